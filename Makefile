@@ -1,0 +1,45 @@
+# cystomap: the two set-up commands are `make run` and `make test` (see README.md).
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+CORES ?= 2
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+APT_PKGS :=
+
+.PHONY: setup run test lint bench clean
+
+$(STAMP): pyproject.toml
+	@# open3d needs libusb-1.0-0; Debian's python3 needs python3-venv for `-m venv`.
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || APT_NEED="libusb-1.0-0"; \
+	 $(PYTHON) -c 'import ensurepip' 2>/dev/null || APT_NEED="$$APT_NEED python3-venv"; \
+	 if [ -n "$$APT_NEED" ]; then \
+	   echo "installing system packages:$$APT_NEED"; \
+	   $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$APT_NEED; \
+	 fi
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[dev]'
+	@touch $@
+
+setup: $(STAMP)
+
+## run the whole workflow on the default study (the built-in phantom)
+run: setup
+	$(BIN)/snakemake --cores $(CORES)
+
+## lint + the test suite (what CI runs)
+test: setup lint
+	$(BIN)/pytest -q
+
+lint: setup
+	$(BIN)/ruff check cystomap scripts tests
+	$(BIN)/snakemake --lint --cores 1
+
+## full-size benchmarks; writes tables under results/bench/
+bench: setup
+	$(BIN)/python -m cystomap.bench --out results/bench
+
+clean:
+	rm -rf results logs benchmarks .snakemake

@@ -1,0 +1,21 @@
+# cystomap: monocular cystoscopy video -> 3-D model, 2-D atlas, and changes between sessions.
+# Run the default study (the built-in phantom):   snakemake --cores 2
+# Run your own study:                             snakemake --cores 2 --configfile my_study.yaml
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/phantom.smk"
+include: "workflow/rules/frames.smk"
+include: "workflow/rules/preprocess.smk"
+
+
+rule all:
+    input:
+        all_targets(),
+    default_target: True

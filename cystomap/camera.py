@@ -1,0 +1,127 @@
+"""Pinhole camera with OpenCV distortion, as configured under ``cameras:``.
+
+Conventions used throughout cystomap: OpenCV camera axes (x right, y down, z forward),
+pixel centres at integer coordinates, distances in millimetres, poses camera-to-world.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cystomap.errors import InputError
+
+DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics of one camera; ``dist`` holds OpenCV's (k1, k2, p1, p2, k3)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    calibrated: bool = True
+    name: str = field(default="camera", compare=False)
+
+    @classmethod
+    def from_fov(
+        cls, width: int, height: int, diagonal_fov_deg: float, name: str = "camera"
+    ) -> Camera:
+        """An uncalibrated camera: square pixels, centred principal point, no distortion."""
+        if not 1.0 < diagonal_fov_deg < 179.0:
+            raise InputError(f"camera {name!r}: diagonal_fov_deg={diagonal_fov_deg} is not in (1, 179)")
+        f = 0.5 * math.hypot(width, height) / math.tan(math.radians(diagonal_fov_deg) / 2)
+        return cls(width, height, f, f, (width - 1) / 2, (height - 1) / 2, calibrated=False, name=name)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], name: str = "camera") -> Camera:
+        """Build from a ``cameras:`` entry: full calibration, or ``diagonal_fov_deg`` only."""
+        try:
+            width, height = int(cfg["width"]), int(cfg["height"])
+        except KeyError as exc:
+            raise InputError(f"camera {name!r}: missing key {exc.args[0]!r}") from None
+        if width <= 0 or height <= 0:
+            raise InputError(f"camera {name!r}: width and height must be positive")
+        if all(k in cfg for k in ("fx", "fy", "cx", "cy")):
+            dist = tuple(float(cfg.get(k, 0.0)) for k in DIST_KEYS)
+            return cls(width, height, float(cfg["fx"]), float(cfg["fy"]), float(cfg["cx"]),
+                       float(cfg["cy"]), dist, calibrated=True, name=name)  # type: ignore[arg-type]
+        if "diagonal_fov_deg" in cfg:
+            return cls.from_fov(width, height, float(cfg["diagonal_fov_deg"]), name=name)
+        raise InputError(
+            f"camera {name!r}: give either fx, fy, cx, cy (and optionally {', '.join(DIST_KEYS)})"
+            " or diagonal_fov_deg"
+        )
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 (the usual name of the intrinsic matrix)
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_array(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+    @property
+    def diagonal_fov_deg(self) -> float:
+        """Diagonal field of view of the pinhole model (distortion ignored)."""
+        half_x = max(self.cx, self.width - 1 - self.cx) + 0.5
+        half_y = max(self.cy, self.height - 1 - self.cy) + 0.5
+        return math.degrees(2 * math.atan(math.hypot(half_x / self.fx, half_y / self.fy)))
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera for images resized by ``factor`` (pixel-centre convention kept)."""
+        w, h = round(self.width * factor), round(self.height * factor)
+        sx, sy = w / self.width, h / self.height
+        return replace(
+            self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5, cy=(self.cy + 0.5) * sy - 0.5,
+        )
+
+    def without_distortion(self) -> Camera:
+        return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Project Nx3 points in camera coordinates to Nx2 pixels (with distortion)."""
+        import cv2
+
+        pts = np.ascontiguousarray(points_cam, dtype=np.float64).reshape(-1, 1, 3)
+        uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist_array)
+        return uv.reshape(-1, 2)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.update(zip(DIST_KEYS, self.dist, strict=True))
+        del d["dist"]
+        d["diagonal_fov_deg"] = round(self.diagonal_fov_deg, 4)
+        return d
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        from cystomap.outputs import write_json
+
+        return write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Camera:
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"{path}: cannot read camera JSON ({exc})") from exc
+        cam = cls.from_config(d, name=str(d.get("name", path.stem)))
+        return replace(cam, calibrated=bool(d.get("calibrated", True)))

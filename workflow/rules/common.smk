@@ -1,0 +1,69 @@
+# Shared set-up: config and sessions-sheet validation, wildcard constraints, target lists.
+import re
+import sys
+from pathlib import Path
+
+import pandas as pd
+from snakemake.utils import validate
+
+# The library is installed into .venv by `make setup`; this also finds it in a plain checkout.
+REPO = Path(workflow.basedir).resolve()
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from cystomap.sessions import phantom_sessions, read_sessions  # noqa: E402
+
+
+validate(config, str(REPO / "workflow/schemas/config.schema.yaml"))
+
+SESSIONS = pd.concat(
+    [read_sessions(config, REPO / "workflow/schemas/sessions.schema.yaml"), phantom_sessions(config)],
+    ignore_index=True,
+)
+if SESSIONS.empty:
+    raise ValueError(
+        "config: no sessions to run: name a sessions sheet with `sessions:` or set `phantom.enabled: true`"
+    )
+SESSIONS = SESSIONS.set_index(["subject", "session"], drop=False).sort_index()
+if SESSIONS.index.duplicated().any():
+    dup = SESSIONS.index[SESSIONS.index.duplicated()].unique().tolist()
+    raise ValueError(f"sessions: duplicate (subject, session) rows: {dup}")
+
+PHANTOM = config["phantom"]
+PHANTOM_SUBJECTS = [PHANTOM["subject"]] if PHANTOM["enabled"] else []
+CONDA_ENV = "../envs/cystomap.yaml"
+
+
+def _alternatives(values):
+    return "|".join(sorted({re.escape(str(v)) for v in values}))
+
+
+wildcard_constraints:
+    subject=_alternatives(SESSIONS["subject"]),
+    session=_alternatives(SESSIONS["session"]),
+
+
+def session_row(wildcards):
+    return SESSIONS.loc[(wildcards.subject, wildcards.session)]
+
+
+def session_video(wildcards):
+    return session_row(wildcards)["video"]
+
+
+def session_camera(wildcards):
+    """The camera entry (a dict) of the session's `camera` key, with its name."""
+    name = session_row(wildcards)["camera"]
+    return {"name": name, **config["cameras"][name]}
+
+
+def phantom_camera():
+    name = PHANTOM["camera"]
+    return {"name": name, **config["cameras"].get(name, {})}
+
+
+def all_targets():
+    targets = []
+    for subject, session in SESSIONS.index:
+        targets.append(f"results/{subject}/{session}/preprocessed")
+    return targets
