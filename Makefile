@@ -27,7 +27,7 @@ setup: $(STAMP)
 
 ## run the whole workflow on the default study (the built-in phantom)
 run: setup
-	$(BIN)/snakemake --cores $(CORES)
+	$(BIN)/snakemake --cores $(CORES) --workflow-profile workflow/profiles/default
 
 ## lint + the test suite (what CI runs)
 test: setup lint

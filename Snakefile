@@ -13,6 +13,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/phantom.smk"
 include: "workflow/rules/frames.smk"
 include: "workflow/rules/preprocess.smk"
+include: "workflow/rules/evaluate.smk"
 
 
 rule all:

@@ -66,7 +66,7 @@ class Camera:
         )
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 (the usual name of the intrinsic matrix)
+    def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property

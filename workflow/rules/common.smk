@@ -33,6 +33,9 @@ PHANTOM = config["phantom"]
 PHANTOM_SUBJECTS = [PHANTOM["subject"]] if PHANTOM["enabled"] else []
 CONDA_ENV = "../envs/cystomap.yaml"
 
+# Outputs the phantom scorer reads, per session; each stage's issue adds its own here.
+SCORED_OUTPUTS = {}
+
 
 def _alternatives(values):
     return "|".join(sorted({re.escape(str(v)) for v in values}))
@@ -62,8 +65,22 @@ def phantom_camera():
     return {"name": name, **config["cameras"].get(name, {})}
 
 
+def phantom_session_names(subject):
+    return [s for (subj, s) in SESSIONS.index if subj == subject]
+
+
+def evaluation_inputs(wildcards):
+    """Truth per session, plus every scored output that the workflow produces so far."""
+    sessions = phantom_session_names(wildcards.subject)
+    inputs = {"truth": [f"results/{wildcards.subject}/phantom/{s}/truth" for s in sessions]}
+    for key, pattern in SCORED_OUTPUTS.items():
+        inputs[key] = [pattern.format(subject=wildcards.subject, session=s) for s in sessions]
+    return inputs
+
+
 def all_targets():
     targets = []
     for subject, session in SESSIONS.index:
         targets.append(f"results/{subject}/{session}/preprocessed")
+    targets += [f"results/{subject}/evaluation.json" for subject in PHANTOM_SUBJECTS]
     return targets

@@ -1,0 +1,122 @@
+"""Scores of the detected changes (session A → B) against the true lesions of session B."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cystomap.evaluate.config import EvalConfig
+from cystomap.evaluate.trajectory import Sim3
+from cystomap.evaluate.truth import Truth, read_csv
+
+log = logging.getLogger(__name__)
+
+CHANGE_COLUMNS = ("x", "y", "z", "diameter_mm")
+_INFEASIBLE = 1e12
+
+
+def match_lesions(
+    true_xyz: np.ndarray, tolerance: np.ndarray, det_xyz: np.ndarray
+) -> list[tuple[int, int, float]]:
+    """One-to-one matches (true index, detection index, distance) within each true tolerance.
+
+    Hungarian assignment: the most matches first, then the least total distance.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    if len(true_xyz) == 0 or len(det_xyz) == 0:
+        return []
+    dist = np.linalg.norm(true_xyz[:, None, :] - det_xyz[None, :, :], axis=2)
+    feasible = dist <= tolerance[:, None]
+    cost = np.where(feasible, dist, _INFEASIBLE)
+    rows, cols = linear_sum_assignment(cost)
+    return [(int(i), int(j), float(dist[i, j])) for i, j in zip(rows, cols, strict=True)
+            if feasible[i, j]]
+
+
+def score_changes(
+    truth_b: Truth, changes_csv: Path, sim3_b: Sim3, cfg: EvalConfig
+) -> dict[str, Any]:
+    """Recall, false positives, localisation and size errors of ``changes.csv``.
+
+    Detections (centroids and diameters in session B's model frame) are taken into the truth
+    frame by ``sim3_b`` (model → truth, so diameters scale by its scale) and matched one-to-one
+    to the true lesions within max(lesion_tolerance_mm, factor × true diameter).
+    """
+    det = read_csv(changes_csv, CHANGE_COLUMNS)
+    true = truth_b.lesions
+    det_xyz = sim3_b.apply(det[["x", "y", "z"]].to_numpy(np.float64).reshape(-1, 3))
+    det_diam = det["diameter_mm"].to_numpy(np.float64) * sim3_b.scale
+    true_xyz = true[["x", "y", "z"]].to_numpy(np.float64).reshape(-1, 3)
+    true_diam = true["diameter_mm"].to_numpy(np.float64)
+    tol = np.maximum(cfg.lesion_tolerance_mm, cfg.lesion_tolerance_diameter_factor * true_diam)
+    matches = match_lesions(true_xyz, tol, det_xyz)
+    by_true = {i: (j, d) for i, j, d in matches}
+    matched_det = {j for _, j, _ in matches}
+
+    lesions = []
+    for i, row in enumerate(true.itertuples(index=False)):
+        entry: dict[str, Any] = {"id": _plain(row.id), "diameter_mm": float(true_diam[i]),
+                                 "detected": i in by_true}
+        if i in by_true:
+            j, d = by_true[i]
+            entry.update(
+                detection_row=j,
+                localisation_error_mm=d,
+                detected_diameter_mm=float(det_diam[j]),
+                size_error_percent=100.0 * (det_diam[j] - true_diam[i]) / true_diam[i],
+            )
+        lesions.append(entry)
+
+    by_diam: dict[str, dict[str, Any]] = {}
+    step = cfg.lesion_diameter_step_mm
+    for entry in lesions:
+        key = f"{round(entry['diameter_mm'] / step) * step:g}"
+        b = by_diam.setdefault(key, {"n": 0, "detected": 0})
+        b["n"] += 1
+        b["detected"] += int(entry["detected"])
+    for b in by_diam.values():
+        b["recall"] = b["detected"] / b["n"]
+
+    loc = np.array([e["localisation_error_mm"] for e in lesions if e["detected"]])
+    size = np.array([e["size_error_percent"] for e in lesions if e["detected"]])
+    fp_rows = [j for j in range(len(det)) if j not in matched_det]
+    out: dict[str, Any] = {
+        "n_true": len(true),
+        "n_detected": len(det),
+        "n_matched": len(matches),
+        "recall": len(matches) / len(true) if len(true) else None,
+        "precision": len(matches) / len(det) if len(det) else None,
+        "false_positives": len(fp_rows),
+        "localisation_error_mm_mean": float(loc.mean()) if len(loc) else None,
+        "localisation_error_mm_median": float(np.median(loc)) if len(loc) else None,
+        "localisation_error_mm_max": float(loc.max()) if len(loc) else None,
+        "size_error_percent_mean": float(size.mean()) if len(size) else None,
+        "size_abs_error_percent_mean": float(np.abs(size).mean()) if len(size) else None,
+        "average_precision": _average_precision(det, matched_det, len(true)),
+        "recall_by_diameter": by_diam,
+        "lesions": lesions,
+        "false_positive_rows": fp_rows,
+    }
+    log.info("%s: %d/%d lesions found, %d false positive(s)", changes_csv, len(matches), len(true),
+             len(fp_rows))
+    return out
+
+
+def _average_precision(det: Any, matched: set[int], n_true: int) -> float | None:
+    """Area under precision–recall when detections are ranked by their ``score`` column."""
+    if "score" not in det.columns or n_true == 0 or len(det) == 0:
+        return None
+    scores = det["score"].to_numpy(np.float64)
+    order = np.argsort(-scores, kind="stable")
+    tp = np.array([j in matched for j in order], dtype=np.float64)
+    cum_tp = np.cumsum(tp)
+    precision = cum_tp / np.arange(1, len(tp) + 1)
+    return float((precision * tp).sum() / n_true)
+
+
+def _plain(value: Any) -> Any:
+    return value.item() if isinstance(value, np.generic) else value

@@ -1,0 +1,161 @@
+"""Scores of the surface mesh and of the 2-D atlas against the true wall."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cystomap.errors import InputError
+from cystomap.evaluate.config import EvalConfig
+from cystomap.evaluate.trajectory import Sim3
+from cystomap.evaluate.truth import (
+    SurfaceQuery,
+    Truth,
+    equirect_directions,
+    equirect_pixels,
+    read_equirect,
+    read_mesh,
+    sample_surface,
+)
+
+log = logging.getLogger(__name__)
+
+
+def score_surface(truth: Truth, mesh_ply: Path, sim3: Sim3, cfg: EvalConfig) -> dict[str, Any]:
+    """Accuracy and completeness of a mesh given in the model frame (``sim3``: model → truth).
+
+    accuracy: distances from points sampled on the reconstructed mesh to the true surface;
+    completeness: share of points sampled on the seen part of the true wall (``seen.png``
+    about the truth barycentre) lying within ``cfg.completeness_threshold_mm`` of the mesh.
+    """
+    rng = np.random.default_rng(cfg.seed)
+    recon = read_mesh(mesh_ply).transformed(sim3)
+    true_mesh = truth.surface
+    origin = truth.barycentre
+    rec_pts = sample_surface(recon, cfg.surface_samples, rng)
+    acc = SurfaceQuery(true_mesh, origin).distance(rec_pts)
+    true_pts = sample_surface(true_mesh, cfg.surface_samples, rng)
+    seen = seen_at(truth, true_pts)
+    dist = SurfaceQuery(recon, origin).distance(true_pts)
+    close = dist <= cfg.completeness_threshold_mm
+    scores = {
+        "n_samples": cfg.surface_samples,
+        "accuracy_mean_mm": float(acc.mean()),
+        "accuracy_median_mm": float(np.median(acc)),
+        "accuracy_p90_mm": float(np.percentile(acc, 90)),
+        "completeness_threshold_mm": cfg.completeness_threshold_mm,
+        "completeness": float(close[seen].mean()) if seen.any() else None,
+        "completeness_whole_wall": float(close.mean()),
+        "seen_share_of_samples": float(seen.mean()),
+        "area_mm2": float(recon.triangle_areas.sum()),
+        "area_ratio": float(recon.triangle_areas.sum() / true_mesh.triangle_areas.sum()),
+    }
+    log.info("%s: accuracy %.3f mm (mean), completeness %s", mesh_ply, scores["accuracy_mean_mm"],
+             scores["completeness"])
+    return scores
+
+
+def seen_at(truth: Truth, points: np.ndarray) -> np.ndarray:
+    """Whether each point of the true wall is seen, from ``seen.png`` about the barycentre."""
+    mask = truth.seen
+    row, col = equirect_pixels(points - truth.barycentre, *mask.shape)
+    return mask[row, col]
+
+
+def read_atlas_json(atlas_dir: Path) -> dict[str, Any]:
+    path = atlas_dir / "atlas.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: cannot read JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    return data
+
+
+def score_atlas(
+    truth: Truth, atlas_dir: Path, sim3: Sim3 | None, cfg: EvalConfig
+) -> dict[str, Any]:
+    """Coverage claimed in atlas.json against the truth; with atlas.png and a Sim(3), its mask.
+
+    The atlas image is compared on the truth's equirectangular grid: each truth pixel's ray from
+    the truth barycentre hits the true wall at X; X is taken into the model frame and looked up
+    in atlas.png from the atlas barycentre. Pixels are weighted by the wall area they cover.
+    A pixel of atlas.png counts as painted when its alpha (if any) or any colour is non-zero.
+    """
+    meta = read_atlas_json(atlas_dir)
+    out: dict[str, Any] = {}
+    true_pct = 100.0 * truth.seen_fraction
+    if "coverage_percent" in meta:
+        try:
+            pct = float(meta["coverage_percent"])
+        except (TypeError, ValueError) as exc:
+            msg = f"{atlas_dir / 'atlas.json'}: coverage_percent is not a number"
+            raise InputError(msg) from exc
+        out.update(coverage_percent=pct, coverage_percent_true=true_pct,
+                   coverage_error_pp=pct - true_pct, coverage_abs_error_pp=abs(pct - true_pct))
+    else:
+        log.warning("%s: no coverage_percent; coverage not scored", atlas_dir / "atlas.json")
+    png = atlas_dir / "atlas.png"
+    if sim3 is None or not png.is_file() or "barycentre" not in meta:
+        why = ("no alignment" if sim3 is None else "no atlas.png" if not png.is_file()
+               else "no barycentre in atlas.json")
+        log.warning("%s: atlas image not scored (%s)", atlas_dir, why)
+        return out
+    atlas_b = np.asarray(meta["barycentre"], dtype=np.float64)
+    if atlas_b.shape != (3,):
+        raise InputError(f"{atlas_dir / 'atlas.json'}: barycentre must be [x, y, z]")
+    out.update(_score_atlas_image(truth, read_equirect(png), atlas_b, sim3, cfg))
+    return out
+
+
+def _score_atlas_image(
+    truth: Truth, atlas: np.ndarray, atlas_b: np.ndarray, sim3: Sim3, cfg: EvalConfig
+) -> dict[str, Any]:
+    seen = truth.seen
+    h, w = seen.shape
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    query = SurfaceQuery(truth.surface, truth.barycentre)
+    t, tri = query.cast(truth.barycentre, dirs)
+    hit = tri >= 0
+    if not hit.any():
+        raise InputError(f"{truth.directory}: rays from the barycentre miss surface.ply")
+    cos_inc = np.abs(np.einsum("ij,ij->i", query.triangle_normals(tri[hit]), dirs[hit]))
+    el = np.arcsin(np.clip(dirs[hit, 2], -1, 1))
+    weight = np.zeros(len(dirs))
+    weight[hit] = t[hit] ** 2 * np.cos(el) / np.maximum(cos_inc, cfg.atlas_min_cos_incidence)
+    wall = truth.barycentre + t[hit, None] * dirs[hit]
+    in_model = sim3.inverse().apply(wall)
+    row, col = equirect_pixels(in_model - atlas_b, *atlas.shape[:2])
+    px = atlas[row, col]
+    if atlas.ndim == 2:
+        painted_hit, grey_hit = px > 0, px
+    elif atlas.shape[2] in (2, 4):
+        painted_hit = px[:, -1] > 0
+        grey_hit = px[:, :-1].mean(axis=1)
+    else:
+        painted_hit, grey_hit = (px > 0).any(axis=1), px.mean(axis=1)
+    painted = np.zeros(len(dirs), dtype=bool)
+    painted[hit] = painted_hit
+    s = seen.reshape(-1) & hit
+    both = s & painted
+    w_seen, w_painted = float(weight[s].sum()), float(weight[painted].sum())
+    w_both, w_union = float(weight[both].sum()), float(weight[s | painted].sum())
+    out: dict[str, Any] = {
+        "painted_percent": 100.0 * w_painted / float(weight.sum()),
+        "mask_recall": w_both / w_seen if w_seen > 0 else None,
+        "mask_precision": w_both / w_painted if w_painted > 0 else None,
+        "mask_iou": w_both / w_union if w_union > 0 else None,
+    }
+    grey = np.zeros(len(dirs))
+    grey[hit] = grey_hit
+    albedo = truth.albedo.reshape(-1)
+    if both.sum() >= 3 and grey[both].std() > 0 and albedo[both].std() > 0:
+        out["albedo_correlation"] = float(np.corrcoef(grey[both], albedo[both])[0, 1])
+    else:
+        out["albedo_correlation"] = None
+    return out

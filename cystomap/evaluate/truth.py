@@ -1,0 +1,279 @@
+"""The phantom's ground truth of one session, and the geometry shared by the scores.
+
+A truth directory holds ``truth.json``, ``poses.csv``, ``camera.json``, ``surface.ply``,
+``seen.png``, ``albedo.png`` and ``lesions.csv`` (formats in the module ``cystomap.evaluate``).
+``truth.json`` and ``poses.csv`` are read up front; the others when a score needs them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError
+
+log = logging.getLogger(__name__)
+
+POSE_COLUMNS = ("frame", "qw", "qx", "qy", "qz", "tx", "ty", "tz")
+LESION_COLUMNS = ("id", "x", "y", "z", "diameter_mm")
+TRUTH_KEYS = ("n_frames", "barycentre", "extent_mm", "seen_fraction")
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh as plain arrays (vertices Nx3 float64, triangles Mx3 int)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+
+    def transformed(self, sim3: Any) -> Mesh:
+        return Mesh(sim3.apply(self.vertices), self.triangles)
+
+    @property
+    def triangle_areas(self) -> np.ndarray:
+        a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
+        return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Ground truth of one session; files other than truth.json and poses.csv load lazily."""
+
+    directory: Path
+    meta: dict[str, Any]
+    frames: np.ndarray  # (N,) int, frame index of each row of poses.csv
+    rotations: np.ndarray  # (N, 3, 3) camera-to-world
+    centres: np.ndarray  # (N, 3) camera centres, mm
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.meta["n_frames"])
+
+    @property
+    def bad_frames(self) -> frozenset[int]:
+        return frozenset(int(f) for f in self.meta.get("bad_frames") or ())
+
+    @property
+    def barycentre(self) -> np.ndarray:
+        return np.asarray(self.meta["barycentre"], dtype=np.float64)
+
+    @property
+    def extent_mm(self) -> float:
+        return float(self.meta["extent_mm"])
+
+    @property
+    def seen_fraction(self) -> float:
+        return float(self.meta["seen_fraction"])
+
+    @cached_property
+    def camera(self) -> Camera:
+        return Camera.load(self._file("camera.json"))
+
+    @cached_property
+    def surface(self) -> Mesh:
+        return read_mesh(self._file("surface.ply"))
+
+    @cached_property
+    def seen(self) -> np.ndarray:
+        """Boolean equirectangular mask about the barycentre: True = seen by a frame."""
+        return read_equirect(self._file("seen.png"), grey=True) > 127
+
+    @cached_property
+    def albedo(self) -> np.ndarray:
+        """Grey equirectangular albedo (float, 0..255) on the grid of ``seen``."""
+        img = read_equirect(self._file("albedo.png"), grey=True)
+        if img.shape != self.seen.shape:
+            raise InputError(
+                f"{self.directory / 'albedo.png'}: size {img.shape[1]}x{img.shape[0]} differs from "
+                f"seen.png {self.seen.shape[1]}x{self.seen.shape[0]}"
+            )
+        return img
+
+    @cached_property
+    def lesions(self) -> pd.DataFrame:
+        path = self._file("lesions.csv")
+        df = read_csv(path, LESION_COLUMNS)
+        if (df["diameter_mm"] <= 0).any():
+            raise InputError(f"{path}: diameter_mm must be positive")
+        return df
+
+    def _file(self, name: str) -> Path:
+        path = self.directory / name
+        if not path.is_file():
+            raise InputError(f"truth file {path} not found (the phantom writes it per session)")
+        return path
+
+
+def load_truth(directory: str | Path) -> Truth:
+    """Read ``truth.json`` and ``poses.csv`` of a truth directory; check their contents."""
+    directory = Path(directory)
+    meta_path = directory / "truth.json"
+    if not meta_path.is_file():
+        raise InputError(f"truth file {meta_path} not found (is {directory} a truth directory?)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{meta_path}: cannot read JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise InputError(f"{meta_path}: expected a JSON object")
+    missing = [k for k in TRUTH_KEYS if k not in meta]
+    if missing:
+        raise InputError(f"{meta_path}: missing key(s) {', '.join(missing)}")
+    if np.asarray(meta["barycentre"]).shape != (3,):
+        raise InputError(f"{meta_path}: barycentre must be [x, y, z]")
+    poses_path = directory / "poses.csv"
+    if not poses_path.is_file():
+        raise InputError(f"truth file {poses_path} not found")
+    df = read_csv(poses_path, POSE_COLUMNS)
+    if df["frame"].duplicated().any():
+        raise InputError(f"{poses_path}: duplicate frame indices")
+    q = df[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
+    norm = np.linalg.norm(q, axis=1)
+    if (np.abs(norm - 1) > 1e-3).any():
+        raise InputError(f"{poses_path}: quaternions must be unit length (w, x, y, z)")
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_quat(q / norm[:, None], scalar_first=True).as_matrix()
+    return Truth(
+        directory=directory,
+        meta=meta,
+        frames=df["frame"].to_numpy(np.int64),
+        rotations=rot.reshape(-1, 3, 3),
+        centres=df[["tx", "ty", "tz"]].to_numpy(np.float64),
+    )
+
+
+def read_csv(path: Path, required: tuple[str, ...]) -> pd.DataFrame:
+    """A CSV with the ``required`` numeric columns (InputError naming the file otherwise)."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise InputError(f"{path}: cannot read CSV ({exc})") from exc
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise InputError(
+            f"{path}: missing column(s) {', '.join(missing)}; "
+            f"found {', '.join(df.columns) or 'none'}"
+        )
+    for c in required:
+        if c == "id":
+            continue
+        try:
+            df[c] = pd.to_numeric(df[c])
+        except (ValueError, TypeError) as exc:
+            raise InputError(f"{path}: column {c} is not numeric ({exc})") from exc
+    return df
+
+
+def read_mesh(path: Path) -> Mesh:
+    """Triangles of a PLY (or other open3d-readable) mesh; InputError if unreadable or empty."""
+    import open3d as o3d
+
+    if not path.is_file():
+        raise InputError(f"mesh {path} not found")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.triangles, dtype=np.int64)
+    if len(v) == 0 or len(f) == 0:
+        raise InputError(f"mesh {path}: no triangles (not a triangle mesh, or unreadable)")
+    return Mesh(v, f)
+
+
+def read_equirect(path: Path, grey: bool = False) -> np.ndarray:
+    """An equirectangular image (width = 2 × height) as float; grey = mean of the colour channels.
+
+    A colour image is returned as (H, W, C) in the file's channel order, alpha included.
+    """
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"{path}: cannot read image")
+    h, w = img.shape[:2]
+    if w != 2 * h:
+        raise InputError(f"{path}: equirectangular image must be 2:1 (width:height), got {w}x{h}")
+    scale = 255.0 / 65535.0 if img.dtype == np.uint16 else 1.0  # 16-bit to the 8-bit scale
+    img = img.astype(np.float64) * scale
+    if grey and img.ndim == 3:
+        img = img[..., : min(3, img.shape[2])].mean(axis=2)
+    return img
+
+
+def equirect_directions(height: int, width: int) -> np.ndarray:
+    """Unit directions (H, W, 3) of the pixel centres of an equirectangular grid."""
+    az = np.radians(-180.0 + (np.arange(width) + 0.5) * 360.0 / width)
+    el = np.radians(90.0 - (np.arange(height) + 0.5) * 180.0 / height)
+    az, el = np.meshgrid(az, el)
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+
+
+def equirect_pixels(
+    directions: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of the pixel containing each direction (need not be unit length)."""
+    d = np.asarray(directions, dtype=np.float64)
+    az = np.arctan2(d[..., 1], d[..., 0])
+    el = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
+    col = np.floor((az + math.pi) / (2 * math.pi) * width).astype(np.int64) % width
+    row = np.clip(np.floor((math.pi / 2 - el) / math.pi * height).astype(np.int64), 0, height - 1)
+    return row, col
+
+
+def sample_surface(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points uniformly distributed over the mesh area."""
+    areas = mesh.triangle_areas
+    total = areas.sum()
+    if not total > 0:
+        raise InputError("mesh has zero area")
+    tri = rng.choice(len(areas), size=n, p=areas / total)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    a, b, c = (mesh.vertices[mesh.triangles[tri, i]] for i in range(3))
+    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
+
+
+class SurfaceQuery:
+    """Distances to, and rays onto, a mesh (open3d RaycastingScene, float32 about ``origin``)."""
+
+    def __init__(self, mesh: Mesh, origin: np.ndarray | None = None) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        self.mesh = mesh
+        tmesh = o3d.t.geometry.TriangleMesh()
+        tmesh.vertex.positions = o3d.core.Tensor((mesh.vertices - self.origin).astype(np.float32))
+        tmesh.triangle.indices = o3d.core.Tensor(mesh.triangles.astype(np.int32))
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(tmesh)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        pts = (np.asarray(points, dtype=np.float64) - self.origin).astype(np.float32)
+        return self.scene.compute_distance(self._o3d.core.Tensor(pts)).numpy().astype(np.float64)
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hit distance (inf if none) and triangle index (-1 if none) of rays from ``origin``."""
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        rays = np.hstack([np.broadcast_to(origin - self.origin, d.shape), d]).astype(np.float32)
+        ans = self.scene.cast_rays(self._o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        tri = ans["primitive_ids"].numpy().astype(np.int64)
+        tri[~np.isfinite(t)] = -1
+        return t, tri
+
+    def triangle_normals(self, tri: np.ndarray) -> np.ndarray:
+        m = self.mesh
+        a, b, c = (m.vertices[m.triangles[tri, i]] for i in range(3))
+        n = np.cross(b - a, c - a)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

@@ -1,0 +1,490 @@
+"""Stage ``preprocess``: undistort the kept frames, mask the field of view, level and enhance.
+
+For every frame (as in the paper: "All camera frames were undistorted ... brightness was leveled
+using a Gaussian-smoothed mask, and contrast was enhanced"):
+
+1. optional resize by ``scale`` (INTER_AREA when shrinking; intrinsics scaled, distortion
+   coefficients unchanged since they act on normalised coordinates), then undistortion with one
+   ``cv2.initUndistortRectifyMap`` computed once and ``cv2.remap`` per frame. The new pinhole
+   camera (``new_camera``) is by default the same K: nothing outside the source image is
+   invented, and any output pixel whose source lies outside the frame is masked out;
+2. field-of-view mask (``mask``): detected from a high temporal percentile of sampled frames
+   (the lit circle/octagon of endoscope video, minus static overlays; see
+   :mod:`cystomap.video`), the whole frame, or a circle; always intersected with the
+   undistortion's valid area and eroded a few pixels;
+3. brightness levelling: the luminance is divided by its Gaussian-smoothed version (sigma a
+   fraction of the image diagonal) computed only inside the mask by normalised convolution
+   (first order, i.e. a Gaussian-weighted local linear fit, so neither the FOV rim nor the image
+   edges are biased); the gain is rescaled to keep the frame's mean level (or ``level_mean``)
+   and applied equally to B, G and R, so colour ratios are kept;
+4. contrast enhancement for matching: CLAHE on the levelled luminance.
+
+Outputs in ``out_dir`` (written atomically): ``color/<name>.png`` (undistorted + levelled BGR, for
+the atlas), ``enhanced/<name>.png`` (grey, levelled + CLAHE, for feature matching), with the same
+file names as the input frames and 0 outside the mask; ``mask.png`` (uint8, 255 = valid);
+``camera.json`` (the undistorted pinhole camera, distortion all zero, at the output size);
+``preprocess.json`` (settings, frames processed, mask area share, timing).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError, StageError
+from cystomap.outputs import atomic_dir, write_json
+from cystomap.video import (
+    circle_mask,
+    erode,
+    fit_circle,
+    fov_mask,
+    ordered_map,
+    static_pixels,
+    temporal_std,
+)
+
+log = logging.getLogger(__name__)
+
+PROGRESS_EVERY_S = 5.0
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_MASK_WORK_WIDTH = 480  # FOV detection runs at most at this width
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Settings of the ``preprocess`` stage (config section ``preprocess``)."""
+
+    # Resize factor of the outputs (and of camera.json) relative to the input frames,
+    # e.g. 0.375 turns 1280x720 into 480x270.
+    scale: float = 1.0
+    # Pinhole camera of the undistorted images (principal point and aspect ratio always kept,
+    # only the focal length changes): "same" = keep fx, fy, cx, cy (with barrel distortion the
+    # far periphery of the source falls outside); "crop" = the focal length at which every output
+    # pixel has a source pixel (like getOptimalNewCameraMatrix alpha=0); "full" = every source
+    # pixel lands in the output (alpha=1; the unfilled corners are masked out). Invalid output
+    # pixels are always masked, so no black border is taken for mucosa.
+    new_camera: str = "same"
+    # Field-of-view mask: "auto" = detect the lit area from the frames, "full" = whole frame,
+    # "circle" = a circle (mask_radius/mask_center, or fitted to the detected FOV rim).
+    mask: str = "auto"
+    # Circle mode: radius in output pixels; 0 = fit the circle to the detected FOV rim.
+    mask_radius: float = 0.0
+    # Circle mode with a radius: centre (x, y) in output pixels; None = the image centre.
+    mask_center: tuple[float, float] | None = None
+    # Erode the mask by this many output pixels (soft FOV rim, interpolation at its edge).
+    mask_erode_px: int = 3
+    # Frames sampled evenly to detect the FOV ("auto" and fitted "circle").
+    mask_samples: int = 50
+    # "auto" mode: FOV pixels whose temporal std over the samples is below mask_static_rel
+    # times the typical one (overlaid text, logos, lens dirt) are masked out, so matching does
+    # not pair static features; needs 8+ frames, skipped if over 10% of the FOV is static
+    # (0 = off).
+    mask_static_rel: float = 0.25
+    # Sigma of the Gaussian illumination estimate, as a fraction of the image diagonal
+    # (0 = no brightness levelling).
+    level_sigma: float = 0.08
+    # The levelling gain is clipped to [1 / level_max_gain, level_max_gain] (dark lumen areas
+    # are not amplified into noise).
+    level_max_gain: float = 4.0
+    # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
+    level_mean: float = 0.0
+    # CLAHE clip limit for the enhanced images (0 = no CLAHE, levelled grey only).
+    clahe_clip: float = 2.0
+    # CLAHE tiles along the longer image side (square tiles).
+    clahe_tiles: int = 8
+    # Worker threads (PNG decoding/encoding and OpenCV release the GIL).
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        checks = [
+            (0 < self.scale <= 4, f"scale must be in (0, 4], got {self.scale}"),
+            (self.new_camera in ("same", "crop", "full"),
+             f"new_camera must be 'same', 'crop' or 'full', got {self.new_camera!r}"),
+            (self.mask in ("auto", "full", "circle"),
+             f"mask must be 'auto', 'full' or 'circle', got {self.mask!r}"),
+            (self.mask_radius >= 0, "mask_radius must be >= 0"),
+            (self.mask_center is None or len(self.mask_center) == 2,
+             "mask_center must be [x, y]"),
+            (self.mask_erode_px >= 0, "mask_erode_px must be >= 0"),
+            (self.mask_samples >= 1, "mask_samples must be >= 1"),
+            (0 <= self.mask_static_rel < 1, "mask_static_rel must be in [0, 1)"),
+            (0 <= self.level_sigma <= 1, "level_sigma must be in [0, 1]"),
+            (self.level_max_gain >= 1, "level_max_gain must be >= 1"),
+            (0 <= self.level_mean <= 255, "level_mean must be in [0, 255]"),
+            (self.clahe_clip >= 0, "clahe_clip must be >= 0"),
+            (self.clahe_tiles >= 1, "clahe_tiles must be >= 1"),
+            (self.threads >= 1, "threads must be >= 1"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise InputError(f"preprocess: {message}")
+
+
+def preprocess_frames(
+    frames_dir: str | Path, out_dir: str | Path, camera: Camera,
+    cfg: PreprocessConfig | None = None,
+) -> Path:
+    """Undistort, mask, level and enhance every ``*.png`` of ``frames_dir`` into ``out_dir``.
+
+    Raises :class:`InputError` if ``frames_dir`` has no PNG, or a frame is unreadable or not of
+    the camera's size (the message names the file). Nothing is left at ``out_dir`` on failure.
+    """
+    cfg = cfg or PreprocessConfig()
+    frames_dir, out_dir = Path(frames_dir), Path(out_dir)
+    t0 = time.perf_counter()
+    paths = _list_frames(frames_dir, camera)
+    geo = _Geometry(camera, cfg)
+    mask, circle = _field_of_view(paths, geo, cfg)
+    share = float(np.count_nonzero(mask)) / mask.size
+    if share < 0.01:
+        raise StageError(f"{frames_dir}: the field-of-view mask is empty (mask={cfg.mask!r})")
+    log.info("preprocess: %d frames, %dx%d -> %dx%d, mask %s covers %.0f%% (%.1f s)", len(paths),
+             camera.width, camera.height, geo.width, geo.height, cfg.mask, 100 * share,
+             time.perf_counter() - t0)
+    leveller = _Leveller(mask, cfg)
+    with atomic_dir(out_dir) as tmp:
+        (tmp / "color").mkdir()
+        (tmp / "enhanced").mkdir()
+
+        def work(path: Path) -> float:
+            return _process(path, tmp, geo, mask, leveller, cfg)
+
+        last_log = time.perf_counter()
+        levels = []
+        for level in ordered_map(work, paths, cfg.threads):
+            levels.append(level)
+            now = time.perf_counter()
+            if now - last_log > PROGRESS_EVERY_S:
+                last_log = now
+                log.info("preprocess: %d/%d frames, %.1f s", len(levels), len(paths), now - t0)
+        cv2.imwrite(str(tmp / "mask.png"), mask)
+        geo.out_camera.save(tmp / "camera.json")
+        summary: dict[str, Any] = {
+            "frames_dir": str(frames_dir),
+            "frames": len(paths),
+            "input_camera": camera.to_dict(),
+            "camera": geo.out_camera.to_dict(),
+            "mask": {"mode": cfg.mask, "area_share": round(share, 4),
+                     "circle": [round(v, 2) for v in circle] if circle else None},
+            "mean_level": {"min": round(min(levels), 2), "max": round(max(levels), 2)},
+            "settings": asdict(cfg),
+            "elapsed_s": round(time.perf_counter() - t0, 3),
+        }
+        write_json(tmp / "preprocess.json", summary)
+    log.info("preprocess: wrote %d frames to %s in %.1f s", len(paths), out_dir,
+             time.perf_counter() - t0)
+    return out_dir
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _list_frames(frames_dir: Path, camera: Camera) -> list[Path]:
+    """The PNG frames, sorted; header checks (PNG, size) before any heavy work."""
+    if not frames_dir.is_dir():
+        raise InputError(f"{frames_dir}: frames directory not found")
+    paths = sorted(p for p in frames_dir.glob("*.png") if p.is_file())
+    if not paths:
+        raise InputError(f"{frames_dir}: no PNG frames in the directory")
+    for path in paths:
+        try:
+            with path.open("rb") as fh:
+                head = fh.read(24)
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read ({exc})") from exc
+        if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+            raise InputError(f"{path}: not a readable PNG image")
+        width, height = struct.unpack(">II", head[16:24])
+        _check_size(path, width, height, camera)
+    return paths
+
+
+def _check_size(path: Path, width: int, height: int, camera: Camera) -> None:
+    if (width, height) != (camera.width, camera.height):
+        raise InputError(f"{path}: frame size {width}x{height} does not match camera "
+                         f"{camera.name!r} ({camera.width}x{camera.height})")
+
+
+def _read(path: Path, camera: Camera, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise InputError(f"{path}: cannot decode PNG (corrupt or truncated)")
+    _check_size(path, image.shape[1], image.shape[0], camera)
+    return image
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+class _Geometry:
+    """Resize + undistortion maps and the undistorted pinhole camera."""
+
+    def __init__(self, camera: Camera, cfg: PreprocessConfig) -> None:
+        self.camera = camera
+        src = camera.scaled(cfg.scale) if cfg.scale != 1.0 else camera
+        self.src = src
+        self.width, self.height = src.width, src.height
+        size = (src.width, src.height)
+        k = src.K
+        if cfg.new_camera == "same" or not camera.has_distortion:
+            new_k = k
+        else:
+            new_k = _new_camera_matrix(k, src.dist_array, size, cfg.new_camera)
+        self.out_camera = replace(
+            src.without_distortion(), fx=float(new_k[0, 0]), fy=float(new_k[1, 1]),
+            cx=float(new_k[0, 2]), cy=float(new_k[1, 2]),
+        )
+        self.maps: tuple[np.ndarray, np.ndarray] | None = None
+        self.valid = np.full((self.height, self.width), 255, np.uint8)
+        if camera.has_distortion:
+            self.maps = cv2.initUndistortRectifyMap(k, src.dist_array, None, new_k, size,
+                                                    cv2.CV_16SC2)
+            ones = np.full((self.height, self.width), 255, np.uint8)
+            warped = self.remap(ones, cv2.INTER_LINEAR)
+            self.valid = np.where(warped >= 255, 255, 0).astype(np.uint8)
+
+    def resize(self, image: np.ndarray) -> np.ndarray:
+        if (image.shape[1], image.shape[0]) == (self.width, self.height):
+            return image
+        shrink = self.width < image.shape[1]
+        return cv2.resize(image, (self.width, self.height),
+                          interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+    def remap(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        if self.maps is None:
+            return image
+        return cv2.remap(image, self.maps[0], self.maps[1], interpolation,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def undistort(self, image: np.ndarray) -> np.ndarray:
+        return self.remap(self.resize(image))
+
+
+def _new_camera_matrix(k: np.ndarray, dist: np.ndarray, size: tuple[int, int], mode: str
+                       ) -> np.ndarray:
+    """K scaled by one factor about the same principal point (square pixels stay square):
+    "crop" = the largest scale at which every output pixel has a source pixel, "full" = the
+    scale at which every source pixel lands in the output."""
+    w, h = size
+    n = 64
+    xs, ys = np.linspace(-0.5, w - 0.5, n), np.linspace(-0.5, h - 0.5, n)
+    border = np.concatenate([
+        np.column_stack([xs, np.full(n, -0.5)]),
+        np.column_stack([np.full(n, w - 0.5), ys]),
+        np.column_stack([xs[::-1], np.full(n, h - 0.5)]),
+        np.column_stack([np.full(n, -0.5), ys[::-1]]),
+    ])
+    und = undistort_points(border, k, dist)  # pixels of the same K without distortion
+    cx, cy = k[0, 2], k[1, 2]
+    dx, dy = und[:, 0] - cx, und[:, 1] - cy
+    if mode == "full":
+        lim_x = np.where(dx > 0, w - 0.5 - cx, cx + 0.5)
+        lim_y = np.where(dy > 0, h - 0.5 - cy, cy + 0.5)
+        with np.errstate(divide="ignore"):
+            s = float(min((lim_x / np.abs(dx)).min(), (lim_y / np.abs(dy)).min()))
+    else:
+        polygon = und.astype(np.float32).reshape(-1, 1, 2)
+        rect = border - (cx, cy)
+
+        def inside(scale: float) -> bool:
+            pts = rect / scale + (cx, cy)
+            return all(cv2.pointPolygonTest(polygon, (float(x), float(y)), False) >= 0
+                       for x, y in pts)
+
+        lo, hi = 0.05, 20.0  # scale lo: output rect far larger than the source; hi: tiny
+        for _ in range(40):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (lo, mid) if inside(mid) else (mid, hi)
+        s = hi
+    new_k = k.copy()
+    new_k[0, 0] *= s
+    new_k[1, 1] *= s
+    return new_k
+
+
+def undistort_points(points: np.ndarray, k: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Undistorted pixel positions (same K) of distorted pixels ``points`` (N x 2), iterated to
+    convergence (OpenCV's default 5 iterations are not enough for strong endoscope distortion)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
+        out = cv2.undistortPointsIter(pts, k, dist, None, k, criteria)
+    else:  # OpenCV 5: undistortPoints takes the criteria
+        out = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=criteria)
+    return out.reshape(-1, 2)
+
+
+def _field_of_view(
+    paths: list[Path], geo: _Geometry, cfg: PreprocessConfig
+) -> tuple[np.ndarray, tuple[float, float, float] | None]:
+    """Final mask (output size, 255 = valid) and the circle used, if any."""
+    h, w = geo.height, geo.width
+    circle: tuple[float, float, float] | None = None
+    if cfg.mask == "full":
+        fov = np.full((h, w), 255, np.uint8)
+    elif cfg.mask == "circle" and cfg.mask_radius > 0:
+        cx, cy = cfg.mask_center if cfg.mask_center is not None else ((w - 1) / 2, (h - 1) / 2)
+        circle = (float(cx), float(cy), float(cfg.mask_radius))
+        fov = circle_mask((h, w), *circle)
+    else:
+        fov = _detect_fov(paths, geo, cfg, with_static=cfg.mask == "auto")
+        if cfg.mask == "circle":
+            circle = fit_circle(fov)
+            if circle is None:
+                log.warning("preprocess: no FOV rim to fit a circle to; using the detected mask")
+            else:
+                fov = circle_mask((h, w), *circle)
+    mask = cv2.bitwise_and(fov, geo.valid)
+    return erode(mask, cfg.mask_erode_px), circle
+
+
+def _detect_fov(paths: list[Path], geo: _Geometry, cfg: PreprocessConfig, with_static: bool
+                ) -> np.ndarray:
+    h, w = geo.height, geo.width
+    f = min(1.0, _MASK_WORK_WIDTH / w)
+    work = (max(8, round(w * f)), max(8, round(h * f)))
+    picks = np.unique(np.round(np.linspace(0, len(paths) - 1,
+                                           min(cfg.mask_samples, len(paths)))).astype(int))
+
+    def sample(path: Path) -> np.ndarray:
+        grey = geo.undistort(_read(path, geo.camera, cv2.IMREAD_GRAYSCALE))
+        return cv2.resize(grey, work, interpolation=cv2.INTER_AREA)
+
+    stack = np.stack(list(ordered_map(sample, [paths[i] for i in picks], cfg.threads)))
+    level = np.percentile(stack, 75, axis=0) if len(stack) > 1 else stack[0]
+    variation = temporal_std(stack) if len(stack) >= 8 else None
+    mask = fov_mask(level, variation)
+    if mask is None:
+        log.warning("preprocess: no field of view found (dark frames?); using the whole frame")
+        mask = np.full(stack.shape[1:], 255, np.uint8)
+    if with_static:
+        # away from the rim: the hull's outermost pixels are black in every frame
+        static = static_pixels(variation, erode(mask, 4) > 0, cfg.mask_static_rel)
+        if static is not None:
+            log.info("preprocess: %.1f%% of the FOV is static (overlay, lens dirt): masked out",
+                     100 * np.count_nonzero(static) / np.count_nonzero(mask))
+            mask[static] = 0
+    if work != (w, h):
+        mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_LINEAR)
+        mask = np.where(mask >= 128, 255, 0).astype(np.uint8)
+    return mask
+
+
+# --------------------------------------------------------------------------- photometry
+
+
+class _Leveller:
+    """Brightness levelling: luminance divided by its smoothed version inside the mask.
+
+    The illumination is a Gaussian-weighted local *linear* fit of the luminance over the mask
+    pixels (first-order normalised convolution, Knutsson & Westin): inside the FOV it equals the
+    usual normalised Gaussian smoothing G(L·m)/G(m), but at the FOV rim and the image edges,
+    where the window is one-sided, it follows the falloff instead of flattening it (a plain
+    normalised convolution would leave the rim too dark or too bright under strong vignetting).
+    It runs on a copy downscaled so the Gaussian is ~4 px wide: same result for a smooth
+    illumination, a fraction of the cost of a huge kernel at full size.
+    """
+
+    def __init__(self, mask: np.ndarray, cfg: PreprocessConfig) -> None:
+        self.cfg = cfg
+        self.inside = mask > 0
+        h, w = mask.shape
+        self.size = (w, h)
+        sigma = cfg.level_sigma * math.hypot(w, h)
+        self.enabled = sigma > 0 and bool(self.inside.any())
+        if not self.enabled:
+            return
+        f = min(1.0, 4.0 / sigma)
+        self.small = (max(4, round(w * f)), max(4, round(h * f)))
+        self.sigma_small = sigma * self.small[0] / w
+        m = cv2.resize(self.inside.astype(np.float64), self.small, interpolation=cv2.INTER_AREA)
+        self.m = m
+        sh, sw = m.shape
+        yy, xx = np.mgrid[0:sh, 0:sw].astype(np.float64)
+        self.x, self.y = xx - (sw - 1) / 2, yy - (sh - 1) / 2
+        x, y, blur = self.x, self.y, self._blur
+        s0 = blur(m)
+        sx, sy = blur(m * x) - x * s0, blur(m * y) - y * s0
+        sxx = blur(m * x * x) - 2 * x * blur(m * x) + x * x * s0
+        syy = blur(m * y * y) - 2 * y * blur(m * y) + y * y * s0
+        sxy = blur(m * x * y) - x * blur(m * y) - y * blur(m * x) + x * y * s0
+        a = np.stack([np.stack([s0, sx, sy], -1), np.stack([sx, sxx, sxy], -1),
+                      np.stack([sy, sxy, syy], -1)], -2)
+        det = np.linalg.det(a)
+        scale = np.maximum(s0 * sxx * syy, 1e-300)
+        ok = (s0 > 1e-3 * s0.max()) & (det > 1e-4 * scale)
+        row = np.zeros(a.shape[:-1])
+        row[ok] = np.linalg.inv(a[ok])[:, 0, :]  # first row: the fitted value at the pixel
+        row[~ok, 0] = 1.0 / np.maximum(s0[~ok], 1e-12)  # too little support: plain average
+        self.row = row
+
+    def _blur(self, image: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(image, (0, 0), self.sigma_small, borderType=cv2.BORDER_CONSTANT)
+
+    def illumination(self, lum: np.ndarray) -> np.ndarray:
+        # area-average L·m (not L): border pixels outside the mask must not leak in
+        ml = cv2.resize(np.where(self.inside, lum, 0).astype(np.float64), self.small,
+                        interpolation=cv2.INTER_AREA)
+        sl = self._blur(ml)
+        slx = self._blur(ml * self.x) - self.x * sl
+        sly = self._blur(ml * self.y) - self.y * sl
+        fitted = self.row[..., 0] * sl + self.row[..., 1] * slx + self.row[..., 2] * sly
+        # never below a fraction of the plain local average (guards an extrapolated fit)
+        plain = sl / np.maximum(self._blur(self.m), 1e-12)
+        fitted = np.maximum(fitted, 0.25 * plain)
+        return cv2.resize(fitted.astype(np.float32), self.size, interpolation=cv2.INTER_LINEAR)
+
+    def gain(self, lum: np.ndarray) -> tuple[np.ndarray | None, float]:
+        """Per-pixel gain (None = no levelling) and the target mean luminance."""
+        inside = self.inside if self.inside.any() else np.ones(lum.shape, bool)
+        mean = float(lum[inside].mean())
+        target = self.cfg.level_mean or mean
+        if not self.enabled:
+            if self.cfg.level_mean > 0 and mean > 0:
+                return np.full(lum.shape, target / mean, np.float32), target
+            return None, mean
+        inv = 1.0 / np.maximum(self.illumination(lum), 1.0)
+        levelled_mean = float((lum * inv)[inside].mean())
+        g = inv * (target / max(levelled_mean, 1e-6))
+        mg = self.cfg.level_max_gain
+        return np.clip(g, 1.0 / mg, mg).astype(np.float32), target
+
+
+def _process(
+    path: Path, out: Path, geo: _Geometry, mask: np.ndarray, leveller: _Leveller,
+    cfg: PreprocessConfig,
+) -> float:
+    """Write color/ and enhanced/ for one frame; returns its mean luminance inside the mask."""
+    image = geo.undistort(_read(path, geo.camera))
+    lum = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    gain, target = leveller.gain(lum)
+    if gain is not None:
+        color = np.clip(image.astype(np.float32) * gain[..., None], 0, 255).astype(np.uint8)
+    else:
+        color = image.copy()
+    outside = mask == 0
+    color[outside] = 0
+    grey = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
+    level = float(grey[~outside].mean()) if (~outside).any() else 0.0
+    if cfg.clahe_clip > 0:
+        # fill the outside with the mean level so the border does not skew CLAHE's histograms
+        grey[outside] = min(255, round(target))
+        h, w = grey.shape
+        tile = max(h, w) / cfg.clahe_tiles
+        grid = (max(1, round(w / tile)), max(1, round(h / tile)))
+        grey = cv2.createCLAHE(clipLimit=cfg.clahe_clip, tileGridSize=grid).apply(grey)
+        grey[outside] = 0
+    for sub, img in (("color", color), ("enhanced", grey)):
+        target_path = out / sub / path.name
+        if not cv2.imwrite(str(target_path), img):
+            raise StageError(f"{target_path}: cannot write PNG")
+    return level

@@ -1,0 +1,68 @@
+"""Shared fixtures: the repository root and a Snakemake runner for workflow tests."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo() -> Path:
+    return REPO
+
+
+class Workflow:
+    """A Snakemake working directory with its own config file (merged over config.yaml)."""
+
+    def __init__(self, workdir: Path, config: dict) -> None:
+        self.workdir = workdir
+        self.configfile = workdir / "test_config.yaml"
+        self.write_config(config)
+
+    def write_config(self, config: dict) -> None:
+        self.configfile.write_text(yaml.safe_dump(config, sort_keys=False))
+
+    def run(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        cmd = [
+            sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"),
+            "--directory", str(self.workdir), "--configfile", str(self.configfile),
+            "--cores", "2", "--nocolor", *args,
+        ]
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=self.workdir, timeout=1200)
+        if check and proc.returncode != 0:
+            raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
+        return proc
+
+    def planned_jobs(self, *targets: str) -> dict[str, int]:
+        """Rule -> job count that a dry run would execute."""
+        proc = self.run("-n", "--quiet", "rules", *targets)
+        return parse_job_counts(proc.stdout + proc.stderr)
+
+
+def parse_job_counts(text: str) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if line.strip().startswith("job") and "count" in line:
+            for row in lines[i + 2 :]:
+                parts = row.split()
+                if len(parts) != 2 or not parts[1].isdigit():
+                    break
+                if parts[0] != "total":
+                    counts[parts[0]] = int(parts[1])
+            break
+    return counts
+
+
+@pytest.fixture
+def workflow_factory(tmp_path: Path):
+    def make(config: dict) -> Workflow:
+        return Workflow(tmp_path, config)
+
+    return make

@@ -1,0 +1,45 @@
+import numpy as np
+import pytest
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError
+
+
+def test_fov_camera_has_requested_diagonal_fov():
+    cam = Camera.from_fov(1280, 720, 76.0)
+    assert cam.diagonal_fov_deg == pytest.approx(76.0, abs=1e-6)
+    assert not cam.calibrated and not cam.has_distortion
+
+
+def test_projection_of_optical_axis_is_principal_point():
+    cam = Camera(640, 480, 500.0, 510.0, 320.3, 240.7, (-0.2, 0.05, 0.001, -0.001, 0.0))
+    uv = cam.project(np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0]]))
+    assert uv[0] == pytest.approx([320.3, 240.7])
+    # barrel distortion (k1 < 0) pulls an off-axis point towards the centre
+    assert 320.3 < uv[1, 0] < 320.3 + 500.0 * 0.1
+
+
+def test_scaled_camera_keeps_fov_and_centre():
+    cam = Camera.from_fov(1280, 720, 76.0).scaled(0.25)
+    assert (cam.width, cam.height) == (320, 180)
+    assert cam.diagonal_fov_deg == pytest.approx(76.0, abs=0.05)
+    assert (cam.cx, cam.cy) == pytest.approx((159.5, 89.5))
+
+
+def test_json_round_trip(tmp_path):
+    cam = Camera(320, 180, 230.0, 231.0, 160.0, 90.0, (-0.1, 0.01, 0.0, 0.0, 0.001), name="c")
+    assert Camera.load(cam.save(tmp_path / "camera.json")) == cam
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        ({"height": 180, "diagonal_fov_deg": 70}, "missing key 'width'"),
+        ({"width": 320, "height": 180}, "diagonal_fov_deg"),
+        ({"width": 320, "height": 180, "diagonal_fov_deg": 200}, "not in (1, 179)"),
+    ],
+)
+def test_bad_camera_entries_name_the_camera(entry, message):
+    with pytest.raises(InputError, match="camera 'scope'") as err:
+        Camera.from_config(entry, name="scope")
+    assert message in str(err.value)

@@ -1,0 +1,238 @@
+"""Tests of the ``frames`` stage on small seeded synthetic videos."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import synthetic_video as sv
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError
+from cystomap.frames import CSV_COLUMNS, FramesConfig, extract_frames, read_frames_csv
+from cystomap.settings import from_mapping
+
+N = 60
+FPS = 25.0
+SPEED = 4.0  # px per frame
+DEFECTS = {10: "black", 20: "blur", 30: "dup", 40: "white"}
+EXPECTED_DROPS = {10: "dark", 20: "blurred", 30: "redundant", 40: "overexposed"}
+DIAGONAL = math.hypot(sv.WIDTH, sv.HEIGHT)
+EXACT = FramesConfig(min_motion=0.005, lookahead=0)  # keep every frame that moved (>= 1.8 px)
+
+
+@pytest.fixture(scope="module")
+def pan_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("video") / "pan.mp4"
+    return sv.write_video(path, sv.pan_frames(N, SPEED, replace=DEFECTS), FPS)
+
+
+def _run(video: Path, out: Path, cfg: FramesConfig) -> list[dict]:
+    assert extract_frames(video, out, cfg) == out
+    return read_frames_csv(out / "frames.csv")
+
+
+def test_drops_exactly_the_defective_frames(pan_video: Path, tmp_path: Path) -> None:
+    out = tmp_path / "frames"
+    rows = _run(pan_video, out, EXACT)
+    header = (out / "frames.csv").read_text().splitlines()[0]
+    assert header == ",".join(CSV_COLUMNS)
+    assert [r["frame"] for r in rows] == list(range(N))
+    assert [r["time_s"] for r in rows] == pytest.approx([i / FPS for i in range(N)], abs=1e-3)
+    dropped = {r["frame"]: r["reason"] for r in rows if not r["kept"]}
+    assert dropped == EXPECTED_DROPS
+    assert all(r["reason"] == "kept" for r in rows if r["kept"])
+    kept = [r["frame"] for r in rows if r["kept"]]
+    assert sorted(p.name for p in out.glob("*.png")) == [f"f{i:06d}.png" for i in kept]
+
+    # exposure figures
+    black, white = rows[10], rows[40]
+    assert black["dark"] > 0.99 and white["saturated"] > 0.99
+    assert max(r["dark"] for r in rows if r["kept"]) < 0.05
+    assert max(r["saturated"] for r in rows if r["kept"]) < 0.01
+    # the blurred frame is far below its neighbours' sharpness
+    assert rows[20]["sharpness"] < 0.4 * np.median([r["sharpness"] for r in rows[15:26]])
+
+    # motion against the last kept frame: the pan speed, twice it after a dropped frame
+    for r in rows[1:]:
+        if r["frame"] in (10, 40):
+            continue
+        gap = 2 if r["frame"] - 1 in EXPECTED_DROPS else 1
+        if r["frame"] == 30:
+            gap = 0  # exact copy of the kept frame 29
+        assert r["motion_px"] == pytest.approx(gap * SPEED, abs=0.3), r
+
+    # file names carry the index of the frame in the video: compare pixels with a fresh decode
+    decoded = sv.decode_all(pan_video)
+    for i in (0, 31, 59):
+        assert np.array_equal(cv2.imread(str(out / f"f{i:06d}.png")), decoded[i])
+
+    summary = json.loads((out / "frames.json").read_text())
+    assert summary["frames_decoded"] == N and summary["frames_kept"] == N - 4
+    assert summary["reasons"]["blurred"] == 1 and summary["fov_share"] == 1.0
+
+
+def test_default_settings_space_frames(pan_video: Path, tmp_path: Path) -> None:
+    cfg = FramesConfig()
+    rows = _run(pan_video, tmp_path / "frames", cfg)
+    for i, reason in EXPECTED_DROPS.items():
+        if reason != "redundant":
+            assert rows[i]["reason"] == reason
+    kept = [r for r in rows if r["kept"]]
+    threshold = cfg.min_motion * DIAGONAL  # 11 px: every third frame at 4 px / frame
+    assert all(r["motion_px"] >= threshold for r in kept[1:])
+    assert all(rows[i]["reason"] == "redundant" for i in range(N)
+               if not rows[i]["kept"] and i not in (10, 20, 40))
+    assert 14 <= len(kept) <= 20
+    gaps = np.diff([r["frame"] for r in kept])
+    assert gaps.min() >= 2 and gaps.max() <= 6  # 3 frames + lookahead 2, +1 after a drop
+
+
+def test_spacing_and_min_gap(pan_video: Path, tmp_path: Path) -> None:
+    cfg = FramesConfig(min_motion=0.05, lookahead=0)  # 18.4 px: every 5th frame
+    kept = [r for r in _run(pan_video, tmp_path / "a", cfg) if r["kept"]]
+    frames = [r["frame"] for r in kept]
+    assert all(r["motion_px"] >= 0.05 * DIAGONAL for r in kept[1:])
+    assert set(np.diff(frames)) <= {5, 6}  # 6 where a frame of the 5th step was dropped
+    assert len(kept) == 12
+
+    cfg = FramesConfig(min_motion=0.0, min_gap=10)
+    frames = [r["frame"] for r in _run(pan_video, tmp_path / "b", cfg) if r["kept"]]
+    assert frames[0] == 0 and np.diff(frames).min() >= 10
+    assert 5 <= len(frames) <= 6
+
+
+def test_max_frames_spreads_over_the_video(pan_video: Path, tmp_path: Path) -> None:
+    out = tmp_path / "frames"
+    rows = _run(pan_video, out, FramesConfig(min_motion=0.005, lookahead=0, max_frames=8))
+    kept = [r["frame"] for r in rows if r["kept"]]
+    assert 6 <= len(kept) <= 8
+    assert kept[0] <= 2 and kept[-1] >= N - 10  # covers the whole video
+    assert len(list(out.glob("f*.png"))) == len(kept)
+    reasons = {r["frame"]: r["reason"] for r in rows}
+    assert {reasons[i] for i in (10, 20, 40)} == {"dark", "blurred", "overexposed"}
+    assert sum(r == "over_limit" for r in reasons.values()) >= N - 4 - 8 - 1
+
+
+def test_time_range(pan_video: Path, tmp_path: Path) -> None:
+    cfg = FramesConfig(min_motion=0.005, lookahead=0, start_s=0.4, end_s=1.2)  # frames 10..29
+    rows = _run(pan_video, tmp_path / "frames", cfg)
+    kept = [r["frame"] for r in rows if r["kept"]]
+    assert kept == [i for i in range(11, 30) if i != 20]
+    assert all(rows[i]["reason"] == "outside_range" for i in [*range(10), *range(30, N)])
+
+
+@pytest.mark.parametrize(("gain", "offset"), [(0.5, 10.0), (0.5, 60.0)], ids=["dim", "flat"])
+def test_thresholds_follow_the_video(tmp_path: Path, gain: float, offset: float) -> None:
+    """Dim or washed-out, low-contrast videos are judged the same way."""
+    frames = [np.clip(gain * f.astype(np.float32) + offset, 0, 255).astype(np.uint8)
+              for f in sv.pan_frames(N, SPEED, replace={20: "blur", 30: "dup"}, seed=3)]
+    video = sv.write_video(tmp_path / "dim.mp4", frames, FPS)
+    rows = _run(video, tmp_path / "frames", EXACT)
+    assert {r["frame"]: r["reason"] for r in rows if not r["kept"]} == {
+        20: "blurred", 30: "redundant"}
+
+
+def test_circular_field_of_view(tmp_path: Path) -> None:
+    circle = (170.0, 85.0, 100.0)  # cut by the top and bottom of the frame
+    frames = sv.pan_frames(40, SPEED, circle=circle, replace={5: "black", 15: "blur"}, seed=1)
+    video = sv.write_video(tmp_path / "circle.mp4", frames, FPS)
+    out = tmp_path / "frames"
+    rows = _run(video, out, FramesConfig(min_motion=0.0))
+    assert {r["frame"]: r["reason"] for r in rows if not r["kept"]} == {5: "dark", 15: "blurred"}
+    # the black border (45% of the frame) is not counted as dark, nor does the static rim
+    # hide the motion
+    assert max(r["dark"] for r in rows if r["kept"]) < 0.05
+    assert np.median([r["motion_px"] for r in rows[1:5]]) == pytest.approx(SPEED, abs=0.3)
+    true_share = float(np.count_nonzero(sv.circle_border(
+        np.full((sv.HEIGHT, sv.WIDTH), 255, np.uint8), *circle))) / (sv.WIDTH * sv.HEIGHT)
+    share = json.loads((out / "frames.json").read_text())["fov_share"]
+    assert share == pytest.approx(true_share, abs=0.03)
+
+
+def test_scope_like_video(tmp_path: Path) -> None:
+    """Rotation with tremor, zoom, drift, glints, noise, vignetting, a round FOV, static text
+    in the corner and inside the FOV, two defocused frames and a three-frame light dip."""
+    frames = sv.scope_frames(N, blurred=(20, 21), dimmed=(40, 41, 42))
+    video = sv.write_video(tmp_path / "scope.mp4", frames, FPS)
+    out = tmp_path / "frames"
+    cfg = FramesConfig()
+    rows = _run(video, out, cfg)
+    assert {r["frame"]: r["reason"] for r in rows if r["reason"] not in ("kept", "redundant")} \
+        == {20: "blurred", 21: "blurred", 40: "dark", 41: "dark", 42: "dark"}
+    summary = json.loads((out / "frames.json").read_text())
+    assert summary["segments"] == 1  # tracked throughout, even across the light dip
+    assert summary["static_share"] > 0  # the static text inside the FOV is ignored
+    true_share = float(np.count_nonzero(sv.circle_border(
+        np.full((sv.HEIGHT, sv.WIDTH), 255, np.uint8), sv.WIDTH / 2, sv.HEIGHT / 2,
+        0.45 * sv.WIDTH))) / (sv.WIDTH * sv.HEIGHT)
+    assert summary["fov_share"] == pytest.approx(true_share, abs=0.03)
+    kept = [r for r in rows if r["kept"]]
+    threshold = cfg.min_motion * DIAGONAL
+    assert all(threshold <= r["motion_px"] < 2.5 * threshold for r in kept[1:]
+               if r["frame"] != 44)  # the first frame after the dip may have moved further
+    assert 8 <= len(kept) <= 16
+
+
+def test_static_camera_keeps_one_frame(tmp_path: Path) -> None:
+    frame = sv.texture(sv.HEIGHT, sv.WIDTH, seed=5)
+    video = sv.write_video(tmp_path / "static.mp4", [frame] * 30, FPS)
+    rows = _run(video, tmp_path / "frames", FramesConfig())
+    assert sum(r["kept"] for r in rows) == 1
+    assert all(r["reason"] == "redundant" for r in rows if not r["kept"])
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def _assert_clean_failure(video: Path, out: Path, match: str, **kwargs: object) -> None:
+    with pytest.raises(InputError, match=match) as err:
+        extract_frames(video, out, FramesConfig(), **kwargs)  # type: ignore[arg-type]
+    assert video.name in str(err.value)
+    assert not out.exists()
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]
+
+
+def test_missing_video(tmp_path: Path) -> None:
+    _assert_clean_failure(tmp_path / "nope.mp4", tmp_path / "frames", "not found")
+
+
+def test_text_file_is_not_a_video(tmp_path: Path) -> None:
+    fake = tmp_path / "notes.mp4"
+    fake.write_text("this is not a video\n" * 50)
+    _assert_clean_failure(fake, tmp_path / "frames", "video|decodable")
+
+
+def test_all_black_video_has_no_usable_frame(tmp_path: Path) -> None:
+    video = sv.write_video(tmp_path / "black.mp4",
+                           [np.zeros((sv.HEIGHT, sv.WIDTH, 3), np.uint8)] * 20, FPS)
+    _assert_clean_failure(video, tmp_path / "frames", "no usable frame")
+
+
+def test_frame_size_must_match_camera(pan_video: Path, tmp_path: Path) -> None:
+    camera = Camera.from_fov(640, 360, 75.0, name="scope")
+    _assert_clean_failure(pan_video, tmp_path / "frames", "320x180.*640x360", camera=camera)
+    ok = Camera.from_fov(sv.WIDTH, sv.HEIGHT, 75.0)
+    extract_frames(pan_video, tmp_path / "ok", EXACT, camera=ok)
+
+
+def test_failure_keeps_earlier_output(tmp_path: Path) -> None:
+    out = tmp_path / "frames"
+    out.mkdir()
+    (out / "frames.csv").write_text("earlier result\n")
+    with pytest.raises(InputError):
+        extract_frames(tmp_path / "missing.mp4", out)
+    assert (out / "frames.csv").read_text() == "earlier result\n"
+
+
+def test_config_from_mapping() -> None:
+    cfg = from_mapping(FramesConfig, {"max_frames": 100, "min_motion": 0.05}, "frames")
+    assert cfg.max_frames == 100 and cfg.min_motion == 0.05
+    with pytest.raises(InputError, match="fov"):
+        from_mapping(FramesConfig, {"fov": "octagon"}, "frames")
+    with pytest.raises(InputError, match=r"frames\.max_frames"):
+        from_mapping(FramesConfig, {"max_frames": "lots"}, "frames")

@@ -1,0 +1,62 @@
+import pytest
+
+from cystomap.errors import InputError
+from cystomap.sessions import load_sheet
+
+CAMERAS = {"scope": {"width": 320, "height": 180, "diagonal_fov_deg": 76}}
+HEADER = "subject\tsession\tvideo\tdate\tcamera\textent_mm\n"
+
+
+@pytest.fixture
+def schema(repo):
+    return repo / "workflow/schemas/sessions.schema.yaml"
+
+
+def write(tmp_path, body, header=HEADER):
+    path = tmp_path / "sessions.tsv"
+    path.write_text(header + body)
+    return path
+
+
+def test_valid_sheet_is_typed(tmp_path, schema):
+    path = write(tmp_path, "p01\tpre\tv1.mp4\t2026-01-02\tscope\t160\np01\tpost\tv2.mp4\t2026-03-02\tscope\t\n")
+    df = load_sheet(path, CAMERAS, schema)
+    assert list(df["session"]) == ["pre", "post"]
+    assert df["extent_mm"].iloc[0] == 160.0
+    assert df["extent_mm"].isna().iloc[1]
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("../p\ta\tv.mp4\t2026-01-02\tscope\t\n", "line 2, column subject"),
+        ("p01\ta;rm -rf\tv.mp4\t2026-01-02\tscope\t\n", "line 2, column session"),
+        ("p01\ta b\tv.mp4\t2026-01-02\tscope\t\n", "line 2, column session"),
+        ("p01\ta\tv.mp4\t02/01/2026\tscope\t\n", "line 2, column date"),
+        ("p01\ta\tv.mp4\t2026-02-31\tscope\t\n", "not an ISO date"),
+        ("p01\ta\tv.mp4\t2026-01-02\tendo\t\n", "camera 'endo' is not a key"),
+        ("p01\ta\tv.mp4\t2026-01-02\tscope\tbig\n", "line 2, column extent_mm"),
+        ("p01\ta\tv.mp4\t2026-01-02\tscope\t-3\n", "line 2, column extent_mm"),
+    ],
+)
+def test_bad_rows_name_line_and_column(tmp_path, schema, body, message):
+    path = write(tmp_path, body)
+    with pytest.raises(InputError) as err:
+        load_sheet(path, CAMERAS, schema)
+    assert str(path) in str(err.value)
+    assert message in str(err.value)
+
+
+def test_missing_column_and_missing_file(tmp_path, schema):
+    path = write(tmp_path, "p01\ta\tv.mp4\n", header="subject\tsession\tvideo\n")
+    with pytest.raises(InputError, match=r"missing column.*date, camera"):
+        load_sheet(path, CAMERAS, schema)
+    with pytest.raises(InputError, match=r"nope\.tsv: file not found"):
+        load_sheet(tmp_path / "nope.tsv", CAMERAS, schema)
+
+
+def test_comma_separated_sheet_is_explained(tmp_path, schema):
+    path = tmp_path / "s.tsv"
+    path.write_text("subject,session,video,date,camera\np,a,v.mp4,2026-01-01,scope\n")
+    with pytest.raises(InputError, match="tab-separated"):
+        load_sheet(path, CAMERAS, schema)
