@@ -1,12 +1,15 @@
 # cystomap: monocular cystoscopy video -> 3-D model, 2-D atlas, and changes between sessions.
 # Run the default study (the built-in phantom):   snakemake --cores 2
 # Run your own study:                             snakemake --cores 2 --configfile my_study.yaml
+from pathlib import Path
+
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "config.yaml"
+# The repository's config.yaml is always the base; --configfile files are merged over it.
+configfile: Path(workflow.basedir) / "config.yaml"
 
 
 include: "workflow/rules/common.smk"

@@ -7,8 +7,10 @@ import pytest
 import yaml
 
 from cystomap import configdoc
+from cystomap.atlas import AtlasConfig
 from cystomap.evaluate import EvalConfig
 from cystomap.frames import FramesConfig
+from cystomap.mesh import MeshConfig
 from cystomap.phantom import PhantomConfig
 from cystomap.preprocess import PreprocessConfig
 from cystomap.sessions import PHANTOM_STUDY_KEYS
@@ -18,6 +20,8 @@ SECTIONS = {
     "preprocess": PreprocessConfig,
     "phantom": PhantomConfig,
     "evaluate": EvalConfig,
+    "mesh": MeshConfig,
+    "atlas": AtlasConfig,
 }
 SCHEMA_WORDS = {
     "type", "default", "description", "items", "minItems", "maxItems", "minimum", "maximum",

@@ -60,6 +60,12 @@ def session_camera(wildcards):
     return {"name": name, **config["cameras"][name]}
 
 
+def session_scale(wildcards):
+    """Known size of the session's bladder for metric scale (None when the sheet has none)."""
+    row = session_row(wildcards)
+    return {k: (None if pd.isna(row[k]) else float(row[k])) for k in ("extent_mm", "volume_ml")}
+
+
 def phantom_camera():
     name = PHANTOM["camera"]
     return {"name": name, **config["cameras"].get(name, {})}

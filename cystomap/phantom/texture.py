@@ -1,0 +1,518 @@
+"""Albedo of the bladder wall: a cube map over material directions, baked procedurally.
+
+The texture is attached to the material (session-1 position of the wall), indexed by the
+direction from the session-1 barycentre, so it is seamless (no azimuth seam, no pole pinch)
+and moves with the wall when session 2 is deformed.
+
+Layout: six faces (+x, -x, +y, -y, +z, -z) of ``n`` texels with a margin of ``MARGIN``
+texels holding the neighbouring faces' content (so bilinear filtering never crosses a face
+edge), tiled 3 across x 2 down. Levels 1 and 2 are 2x and 4x box-filtered copies (mipmaps).
+
+Contents: pink-orange mucosa with low-frequency colour variation (3-D functions of the wall
+point), mottling (3-D noise), deep (blurred, purplish) and superficial (sharp, dark red)
+branching vessels drawn as polylines on every face they cross, and fine grain at
+``texture_detail_mm``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cystomap.phantom.config import PhantomConfig
+from cystomap.phantom.geometry import STREAM_TEXTURE, Bladder, rng, unit
+
+log = logging.getLogger(__name__)
+
+MARGIN = 8
+N_LEVELS = 3
+MUCOSA_RGB = np.array([0.90, 0.62, 0.50], dtype=np.float32)
+PALE_RGB = np.array([0.94, 0.76, 0.66], dtype=np.float32)  # pale, less vascular patches
+VESSEL_RGB = np.array([0.60, 0.15, 0.13], dtype=np.float32)
+DEEP_TINT = np.array([0.10, 0.32, 0.24], dtype=np.float32)  # darkening of R, G, B by deep vessels
+
+
+def face_st(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Face index, face coordinates s, t in [-1, 1], and |d_major| / |d| for directions ``d``.
+
+    Face 2k (+) / 2k+1 (-) is the one whose normal is ± axis k; s = d[k+1] / |d[k]|,
+    t = d[k+2] / |d[k]| (indices mod 3). ``d`` need not be normalised.
+    """
+    a = np.abs(d)
+    k = a.argmax(axis=1)
+    rows = np.arange(len(d))
+    major = a[rows, k]
+    neg = d[rows, k] < 0
+    face = 2 * k + neg
+    s = d[rows, (k + 1) % 3] / major
+    t = d[rows, (k + 2) % 3] / major
+    dn = major / np.sqrt(np.einsum("ij,ij->i", d, d))
+    return face, s, t, dn
+
+
+def face_dirs(face: int, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Unnormalised directions of face coordinates (inverse of face_st)."""
+    k, sign = face // 2, (-1.0 if face % 2 else 1.0)
+    d = np.empty((*np.broadcast(s, t).shape, 3), dtype=np.float64)
+    d[..., k] = sign
+    d[..., (k + 1) % 3] = s
+    d[..., (k + 2) % 3] = t
+    return d
+
+
+@dataclass
+class CubeMap:
+    """Mipmapped RGB cube map (uint8) plus a gloss map at level-2 resolution."""
+
+    levels: list[np.ndarray]
+    n: int
+    gloss: np.ndarray | None = None  # float32 layout at level 2, values in [0, 1]
+
+    @property
+    def tile(self) -> int:
+        return self.n + 2 * MARGIN
+
+    def pixel(self, face: np.ndarray, s: np.ndarray, t: np.ndarray, level: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+        n, m = self.n >> level, MARGIN >> level
+        tile = n + 2 * m
+        x = (face % 3) * tile + m + (s + 1) * (0.5 * n) - 0.5
+        y = (face // 3) * tile + m + (t + 1) * (0.5 * n) - 0.5
+        return x.astype(np.float32), y.astype(np.float32)
+
+    def texel_mm(self, radius: np.ndarray, dn: np.ndarray) -> np.ndarray:
+        """Approximate size of a level-0 texel on the wall at material radius and ``dn``."""
+        return radius * (2.0 / self.n) * dn**1.5
+
+    def lod(self, footprint_mm: np.ndarray, radius: np.ndarray, dn: np.ndarray) -> np.ndarray:
+        return np.clip(np.log2(np.maximum(footprint_mm / self.texel_mm(radius, dn), 1e-6)),
+                       0, N_LEVELS - 1).astype(np.float32)
+
+    def sample(self, points: np.ndarray, footprint_mm: np.ndarray | None = None,
+               with_gloss: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """Bilinear/trilinear albedo (float32 0..255, RGB) at material points (n, 3)."""
+        pts = np.asarray(points, dtype=np.float32)
+        face, s, t, dn = face_st(pts)
+        count = len(pts)
+        if footprint_mm is None:
+            lod = np.zeros(count, np.float32)
+        else:
+            radius = np.sqrt(np.einsum("ij,ij->i", pts, pts))
+            lod = self.lod(np.asarray(footprint_mm, np.float32), radius, dn)
+        out = np.zeros((count, 3), np.float32)
+        x0, y0 = self.pixel(face, s, t, 0)
+        top = float(lod.max()) if count else 0.0
+        for level in range(N_LEVELS):
+            if level > 0 and top <= level - 1:
+                break
+            w = np.clip(1.0 - np.abs(lod - level), 0, 1)
+            if level == N_LEVELS - 1:
+                w = np.clip(lod - (level - 1), 0, 1)
+            # level-l texel coordinates are the level-0 ones scaled (the layout halves)
+            f = 0.5**level
+            x, y = x0 * f + (0.5 * f - 0.5), y0 * f + (0.5 * f - 0.5)
+            out += w[:, None] * _remap_points(self.levels[level], x, y)
+        gloss = None
+        if with_gloss and self.gloss is not None:
+            x, y = x0 * 0.25 - 0.375, y0 * 0.25 - 0.375
+            gloss = _remap_points(self.gloss, x, y)[:, 0]
+        return out, gloss
+
+    def rebuild_mips(self) -> None:
+        base = self.levels[0]
+        self.levels = [base]
+        for _ in range(1, N_LEVELS):
+            prev = self.levels[-1]
+            self.levels.append(cv2.resize(prev, (prev.shape[1] // 2, prev.shape[0] // 2),
+                                          interpolation=cv2.INTER_AREA))
+
+
+def _remap_points(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """cv2.remap for a flat list of points; returns (n, channels) float32."""
+    n = len(x)
+    width = 1024
+    rows = -(-n // width)
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n], my[:n] = x, y
+    r = cv2.remap(img, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE)
+    r = r.reshape(rows * width, -1)[:n]
+    return r.astype(np.float32)
+
+
+def face_size(cfg: PhantomConfig, max_radius: float) -> int:
+    """Texels per face edge: the finest texel (face centre, farthest wall) <= ~detail / 1.2."""
+    if cfg.cube_face_px:
+        return cfg.cube_face_px
+    need = 2 * max_radius / (cfg.texture_detail_mm / 1.2)
+    n = 256
+    while n < need and n < 2048:
+        n *= 2
+    return n
+
+
+class RadiusTable:
+    """Wall distance from the session-1 barycentre per direction (equirectangular, bilinear)."""
+
+    def __init__(self, scene, centre: np.ndarray, res_deg: float = 0.5) -> None:
+        self.res = res_deg
+        self.w = round(360 / res_deg)
+        self.h = round(180 / res_deg)
+        az = -180 + (np.arange(self.w) + 0.5) * res_deg
+        el = 90 - (np.arange(self.h) + 0.5) * res_deg
+        from cystomap.phantom.geometry import direction
+
+        d = direction(az[None, :], el[:, None]).reshape(-1, 3)
+        t = cast(scene, np.broadcast_to(centre, d.shape), d)["t_hit"]
+        t = np.where(np.isfinite(t), t, np.nan).reshape(self.h, self.w)
+        fill = np.nanmedian(t)
+        self.table = np.where(np.isfinite(t), t, fill).astype(np.float32)
+
+    def __call__(self, d: np.ndarray) -> np.ndarray:
+        d = unit(np.asarray(d, np.float64))
+        az = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+        el = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+        x = (az + 180) / self.res - 0.5
+        y = (90 - el) / self.res - 0.5
+        x0 = np.floor(x).astype(int)
+        y0 = np.clip(np.floor(y).astype(int), 0, self.h - 2)
+        fx, fy = x - x0, np.clip(y - y0, 0, 1)
+        xa, xb = x0 % self.w, (x0 + 1) % self.w
+        tb = self.table
+        top = tb[y0, xa] * (1 - fx) + tb[y0, xb] * fx
+        bot = tb[y0 + 1, xa] * (1 - fx) + tb[y0 + 1, xb] * fx
+        return top * (1 - fy) + bot * fy
+
+
+def cast(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int = 0) -> dict[str, np.ndarray]:
+    """Cast rays (float32) and return numpy arrays of t_hit, primitive_ids, primitive_uvs."""
+    import open3d as o3d
+
+    rays = np.empty((len(dirs), 6), np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = dirs
+    ans = scene.cast_rays(o3d.core.Tensor(rays), nthreads=nthreads)
+    return {"t_hit": ans["t_hit"].numpy(), "primitive_ids": ans["primitive_ids"].numpy(),
+            "primitive_uvs": ans["primitive_uvs"].numpy()}
+
+
+def surface_points(scene, bladder: Bladder, origin: np.ndarray, dirs: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hit of rays from ``origin``: (world point, material point, wall?) — misses → NaN."""
+    hit = cast(scene, np.broadcast_to(origin, dirs.shape), dirs)
+    return interpolate_hit(bladder, hit)
+
+
+def interpolate_hit(bladder: Bladder, hit: dict[str, np.ndarray], with_normals: bool = False):
+    """World point, material point (and vertex normal) at ray hits by barycentric interpolation."""
+    t = hit["t_hit"]
+    ok = np.isfinite(t)
+    pid = np.where(ok, hit["primitive_ids"], 0).astype(np.int64)
+    uv = hit["primitive_uvs"].astype(np.float64)
+    w = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
+    tri = bladder.triangles[pid]
+    world = np.einsum("nk,nkc->nc", w, bladder.vertices[tri])
+    material = np.einsum("nk,nkc->nc", w, bladder.material[tri])
+    world[~ok] = np.nan
+    material[~ok] = np.nan
+    wall = ok & (pid < bladder.n_wall_tris)
+    if with_normals:
+        nrm = unit(np.einsum("nk,nkc->nc", w, bladder.normals[tri]))
+        nrm[~ok] = np.nan
+        return world, material, wall, nrm
+    return world, material, wall
+
+
+# ----------------------------------------------------------------------------------------
+# procedural content
+
+
+@dataclass
+class Waves:
+    """Sum of plane waves cos(k.x + phase) in 3-D (a smooth random field, mm input)."""
+
+    k: np.ndarray
+    amp: np.ndarray
+    phase: np.ndarray
+
+    @classmethod
+    def random(cls, g: np.random.Generator, n: int, wavelength_mm: tuple[float, float],
+               std: float) -> Waves:
+        lam = g.uniform(*wavelength_mm, size=n)
+        k = unit(g.normal(size=(n, 3))) * (2 * np.pi / lam)[:, None]
+        amp = g.normal(size=n) * std * math.sqrt(2.0 / n)
+        return cls(k, amp, g.uniform(0, 2 * np.pi, size=n))
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(x), np.float64)
+        for k, a, p in zip(self.k, self.amp, self.phase, strict=True):
+            out += a * np.cos(x @ k + p)
+        return out
+
+
+class NoiseVolume:
+    """Gaussian-smoothed white noise on a 3-D grid, unit std, sampled trilinearly (mm input)."""
+
+    def __init__(self, g: np.random.Generator, lo: np.ndarray, hi: np.ndarray, spacing: float,
+                 sigma_cells: float) -> None:
+        from scipy.ndimage import gaussian_filter
+
+        self.lo = lo
+        self.spacing = spacing
+        shape = tuple(int(v) for v in np.ceil((hi - lo) / spacing) + 2)
+        vol = g.standard_normal(shape, dtype=np.float32)
+        vol = gaussian_filter(vol, sigma_cells, mode="wrap")
+        vol /= vol.std()
+        self.vol = vol
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import map_coordinates
+
+        c = ((x - self.lo) / self.spacing).T
+        return map_coordinates(self.vol, c, order=1, mode="nearest")
+
+
+@dataclass
+class Vessels:
+    """Vessel segments on the unit sphere of material directions."""
+
+    p0: np.ndarray
+    p1: np.ndarray
+    width_mm: np.ndarray
+    deep: np.ndarray  # bool
+    fade: np.ndarray  # opacity factor along the vessel (0 at its ends)
+
+    def __len__(self) -> int:
+        return len(self.width_mm)
+
+
+def _rotate_tangent(h: np.ndarray, p: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    return h * np.cos(angle)[:, None] + np.cross(p, h) * np.sin(angle)[:, None]
+
+
+def grow_vessels(g: np.random.Generator, radius: RadiusTable, area_mm2: float,
+                 min_width_mm: float) -> Vessels:
+    """Branching random walks on the wall (trunks ~1 mm wide, branches down to min width)."""
+    n0 = max(6, round(area_mm2 / 700.0))
+    p = unit(g.normal(size=(n0, 3)))
+    h = unit(np.cross(p, unit(g.normal(size=(n0, 3)))))
+    width = np.exp(g.uniform(np.log(max(0.3, min_width_mm)), np.log(1.1), size=n0))
+    length = g.uniform(40, 110, size=n0) * np.sqrt(width)
+    deep = g.random(n0) < 0.5
+    segs: list[tuple[np.ndarray, ...]] = []
+    generation = 0
+    max_vessels = 60000
+    total = n0
+    while len(p) and generation < 12:
+        curv = g.normal(0, 0.015, size=len(p))
+        sigma = 0.10 + 0.30 * np.clip(0.6 - width, 0, 0.6)  # thin vessels are more tortuous
+        travelled = np.zeros(len(p))
+        w_start = width.copy()
+        alive = np.ones(len(p), bool)
+        kids: list[tuple[np.ndarray, ...]] = []
+        spacing = np.clip(16.0 * width, 4.0, 14.0)
+        while alive.any():
+            i = np.flatnonzero(alive)
+            frac = travelled[i] / length[i]
+            w_now = w_start[i] * (1 - 0.6 * frac)
+            step = np.clip(1.5 * w_now, 0.25, 1.0)
+            rad = radius(p[i])
+            p_new = unit(p[i] + h[i] * (step / rad)[:, None])
+            hn = h[i] - np.einsum("ij,ij->i", h[i], p_new)[:, None] * p_new
+            hn = unit(hn)
+            turn = curv[i] * step + sigma[i] * np.sqrt(step) * g.standard_normal(len(i))
+            hn = _rotate_tangent(hn, p_new, turn)
+            # vessels emerge from / dive into the deeper tissue: fade in and out
+            fade = np.clip(frac / 0.12, 0, 1) * np.clip((1 - frac) / 0.15, 0, 1)
+            fade = fade * fade * (3 - 2 * fade)
+            segs.append((p[i].copy(), p_new, w_now, deep[i], fade))
+            p[i], h[i] = p_new, hn
+            travelled[i] += step
+            alive[i] = travelled[i] < length[i]
+            # branching
+            b = g.random(len(i)) < step / spacing[i]
+            if b.any() and total < max_vessels:
+                j = i[b]
+                nb = len(j)
+                ang = g.uniform(0.45, 1.3, size=nb) * g.choice([-1.0, 1.0], size=nb)
+                cw = w_now[b] * g.uniform(0.45, 0.8, size=nb)
+                keep = cw >= min_width_mm
+                if keep.any():
+                    j, ang, cw = j[keep], ang[keep], cw[keep]
+                    ch = _rotate_tangent(h[j], p[j], ang)
+                    cl = np.clip(g.uniform(12, 50, size=len(j)) * cw, 2.0, None)
+                    cd = deep[j] & (cw > 0.25)
+                    kids.append((p[j].copy(), ch, cw, cl, cd))
+                    total += len(j)
+        if not kids:
+            break
+        p = np.concatenate([k[0] for k in kids])
+        h = np.concatenate([k[1] for k in kids])
+        width = np.concatenate([k[2] for k in kids])
+        length = np.concatenate([k[3] for k in kids])
+        deep = np.concatenate([k[4] for k in kids])
+        generation += 1
+    return Vessels(*(np.concatenate([s[k] for s in segs]) for k in range(5)))
+
+
+def draw_vessels(canvas: np.ndarray, face: int, n: int, vessels: Vessels, sel: np.ndarray,
+                 radius: RadiusTable, opacity: np.ndarray) -> None:
+    """Draw the selected segments into one face tile (uint8 canvas; value = opacity)."""
+    k, sign = face // 2, (-1.0 if face % 2 else 1.0)
+    p0, p1 = vessels.p0[sel], vessels.p1[sel]
+    dn0, dn1 = sign * p0[:, k], sign * p1[:, k]
+    ok = (dn0 > 0.45) & (dn1 > 0.45)
+    if not ok.any():
+        return
+    p0, p1, dn0, dn1 = p0[ok], p1[ok], dn0[ok], dn1[ok]
+    width = vessels.width_mm[sel][ok]
+    alpha = opacity[ok]
+    tile = n + 2 * MARGIN
+
+    def px(p, dn):
+        s = p[:, (k + 1) % 3] / dn
+        t = p[:, (k + 2) % 3] / dn
+        return MARGIN + (s + 1) * (0.5 * n) - 0.5, MARGIN + (t + 1) * (0.5 * n) - 0.5
+
+    x0, y0 = px(p0, dn0)
+    x1, y1 = px(p1, dn1)
+    lo, hi = -8.0, tile + 8.0
+    inside = ((np.minimum(x0, x1) < hi) & (np.maximum(x0, x1) > lo)
+              & (np.minimum(y0, y1) < hi) & (np.maximum(y0, y1) > lo))
+    if not inside.any():
+        return
+    x0, y0, x1, y1 = x0[inside], y0[inside], x1[inside], y1[inside]
+    width, alpha, dn0 = width[inside], alpha[inside], dn0[inside]
+    texel = radius(p0[inside]) * (2.0 / n) * dn0**1.5
+    wpx = width / texel
+    thick = np.maximum(1, np.round(wpx)).astype(int)
+    value = np.clip(alpha * np.minimum(wpx, 1.0) * 255, 0, 255)
+    vq = (np.round(value / 8) * 8).clip(0, 255).astype(int)
+    shift = 4
+    pts = np.stack([x0, y0, x1, y1], 1) * (1 << shift)
+    pts = np.round(pts).astype(np.int32).reshape(-1, 2, 2)
+    order = np.lexsort((thick, vq))
+    keys = np.stack([vq[order], thick[order]], 1)
+    starts = np.flatnonzero(np.r_[True, (np.diff(keys, axis=0) != 0).any(1)])
+    ends = np.r_[starts[1:], len(order)]
+    for a, b in zip(starts, ends, strict=True):
+        if keys[a, 0] == 0:
+            continue
+        idx = order[a:b]
+        cv2.polylines(canvas, list(pts[idx]), False, int(keys[a, 0]), int(keys[a, 1]),
+                      cv2.LINE_AA, shift)
+
+
+def _face_grid(face: int, n: int, level: int, ext: int) -> tuple[np.ndarray, int]:
+    """Unit directions of the level-``level`` texel centres of a face tile, extended by
+    ``ext`` texels on each side (rows = t, columns = s); also the side length."""
+    tile = (n + 2 * MARGIN) >> level
+    f = 1 << level
+    i = np.arange(-ext, tile + ext)
+    xf = f * i + (f - 1) / 2  # level-0 pixel position of the texel centres
+    sc = ((xf - MARGIN) + 0.5) * (2.0 / n) - 1.0
+    d = unit(face_dirs(face, sc[None, :], sc[:, None]).reshape(-1, 3))
+    return d, len(i)
+
+
+def _upsample(arr: np.ndarray, factor: int, ext: int, size: int, start: int = 0) -> np.ndarray:
+    """Upsample a grid from _face_grid(ext) by ``factor`` (cv2 pixel-centre convention) and
+    crop ``size`` texels from index ``start`` of the finer grid (negative = into its margin)."""
+    h, w = arr.shape[:2]
+    up = cv2.resize(arr, (w * factor, h * factor), interpolation=cv2.INTER_LINEAR)
+    o = ext * factor + start
+    return up[o:o + size, o:o + size]
+
+
+def build_mucosa(cfg: PhantomConfig, bladder: Bladder, scene) -> CubeMap:
+    """Bake the session-independent mucosa texture (session-1 bladder and scene)."""
+    t0 = time.perf_counter()
+    g = rng(cfg, STREAM_TEXTURE)
+    centre = np.zeros(3)
+    radius = RadiusTable(scene, centre)
+    max_r = float(np.linalg.norm(bladder.wall_vertices, axis=1).max())
+    n = face_size(cfg, max_r)
+    tile = n + 2 * MARGIN
+    lo = bladder.vertices.min(0) - 4.0
+    hi = bladder.vertices.max(0) + 4.0
+    detail = cfg.texture_detail_mm
+    # smooth 3-D fields (functions of the session-1 wall point, so seamless across faces)
+    bright = Waves.random(g, 12, (18.0, 90.0), 0.035)
+    pink = Waves.random(g, 10, (25.0, 80.0), 1.0)
+    pale = Waves.random(g, 10, (30.0, 100.0), 1.0)
+    blotch = NoiseVolume(g, lo, hi, 2.5, 1.6)
+    mottle = NoiseVolume(g, lo, hi, max(1.0, 2.0 * detail), 1.2)
+    vessels = grow_vessels(g, radius, bladder.wall_area_mm2, max(detail, 0.06))
+    deep_sel = vessels.deep
+    deep_op = 0.5 * vessels.fade
+    sup_op = np.clip(0.2 + 0.6 * vessels.width_mm, 0.25, 0.8) * vessels.fade
+    seg_mm = np.linalg.norm(vessels.p1 - vessels.p0, axis=1) * radius(vessels.p0)
+    log.info("texture: %d texels per face, %d vessel segments (%.1f m)", n, len(vessels),
+             float(seg_mm.sum()) / 1000)
+    level0 = np.zeros((2 * tile, 3 * tile, 3), np.uint8)
+    t2 = tile // 4
+    gloss = np.zeros((2 * t2, 3 * t2), np.float32)
+    for face in range(6):
+        # level 4: smooth colour variation
+        d4, _ = _face_grid(face, n, 4, 2)
+        w4, _, _ = surface_points(scene, bladder, centre, d4)
+        miss = ~np.isfinite(w4[:, 0])
+        w4[miss] = d4[miss] * radius(d4[miss])[:, None]
+        smooth = np.stack([bright(w4), 1 / (1 + np.exp(-(pink(w4) - 1.0) * 3.0)),
+                           np.clip(pale(w4) - 0.3, 0, 1.0)], -1).astype(np.float32)
+        side4 = round(math.sqrt(len(d4)))
+        d2, side2 = _face_grid(face, n, 2, 2)
+        sm = _upsample(smooth.reshape(side4, side4, 3), 4, 2, side2, start=-2)
+        # level 2: mottling, gloss (grid extended by 2 texels for the final upsampling)
+        w2, _, _ = surface_points(scene, bladder, centre, d2)
+        miss = ~np.isfinite(w2[:, 0])
+        w2[miss] = d2[miss] * radius(d2[miss])[:, None]
+        bl = blotch(w2).reshape(side2, side2)
+        mo = mottle(w2).reshape(side2, side2)
+        b = sm[..., 0] + 0.015 * bl + 0.012 * mo
+        col = np.empty((side2, side2, 3), np.float32)
+        for c, (kp, pale_c) in enumerate(zip((0.0, 0.16, 0.12), PALE_RGB, strict=True)):
+            x = MUCOSA_RGB[c] * (1 + b) * (1 - kp * sm[..., 1])
+            col[..., c] = x + (pale_c - x) * (0.4 * sm[..., 2])
+        gl = np.clip((mo - 1.2) / 0.5, 0, 1) * np.clip(1 + 0.5 * bl, 0, 1)
+        r0, c0 = (face // 3) * t2, (face % 3) * t2
+        gloss[r0:r0 + t2, c0:c0 + t2] = gl[2:-2, 2:-2]
+        col = _upsample(col, 4, 2, tile)
+        # vessels: deep (blurred, purplish darkening) then superficial (dark red)
+        texel_mm = float(np.median(radius(d2))) * 2.0 / n
+        canvas = np.zeros((tile, tile), np.uint8)
+        draw_vessels(canvas, face, n, vessels, deep_sel, radius, deep_op[deep_sel])
+        deep = cv2.GaussianBlur(canvas, (0, 0), 0.45 / texel_mm).astype(np.float32)
+        canvas[:] = 0
+        draw_vessels(canvas, face, n, vessels, ~deep_sel, radius, sup_op[~deep_sel])
+        sup = cv2.GaussianBlur(canvas, (0, 0), 0.6).astype(np.float32)
+        sup *= 1 / 255
+        # fine grain (independent per face: white noise at texture_detail_mm)
+        grain = g.standard_normal((tile, tile), dtype=np.float32)
+        sg = max(0.5, 0.5 * detail / texel_mm)
+        grain = cv2.GaussianBlur(grain, (0, 0), sg)
+        grain *= 0.025 / max(float(grain[::7, ::7].std()), 1e-6)
+        grain += 1
+        planes = []
+        for c in range(3):
+            x = col[..., c]
+            x *= 1 - (DEEP_TINT[c] / 255) * deep
+            x += (VESSEL_RGB[c] - x) * sup
+            x *= grain
+            planes.append(x)
+        col = cv2.merge(planes)
+        blur = 0.35 * detail / texel_mm
+        if blur > 0.7:
+            col = cv2.GaussianBlur(col, (0, 0), blur)
+        r0, c0 = (face // 3) * tile, (face % 3) * tile
+        level0[r0:r0 + tile, c0:c0 + tile] = cv2.convertScaleAbs(col, alpha=255.0)
+    cube = CubeMap([level0], n, gloss)
+    cube.rebuild_mips()
+    log.info("texture baked in %.1f s", time.perf_counter() - t0)
+    return cube
