@@ -10,23 +10,37 @@ inside it such as text or lens dirt, found by their low temporal variation, are 
 * ``saturated`` / ``dark``: share of FOV pixels at or above ``saturation_level`` / below the
   video's dark level (``dark_rel`` times its typical brightness, at least ``black_level``);
 * motion: consecutive frames are tracked (gain-normalised grey, Lucas-Kanade on corners away
-  from glints and the FOV rim, forward-backward checked, a similarity transform fitted with
-  RANSAC) and the transforms chained; the motion between two frames is the median displacement
-  of a grid of FOV points under the chained transform (``motion_px``, in full-resolution
-  pixels). Pan, rotation and zoom all count; hand tremor back and forth cancels. Dark or
-  overexposed frames are tracked through but never become the reference. When tracking fails
-  for ``max_track_gap`` frames in a row a new segment starts, and its first good frame is kept.
+  from glints and the FOV rim, started where the last step would take them if that fails,
+  forward-backward checked, a similarity transform fitted with RANSAC) and the transforms
+  chained; the motion between two frames is the median displacement of a grid of FOV points
+  under the chained transform (``motion_px``, in full-resolution pixels). Pan, rotation and
+  zoom all count; hand tremor back and forth cancels. Dark or overexposed frames are tracked
+  through but never become the reference. A frame that cannot be tracked (the camera moved
+  too far, a bad frame in between) starts a new segment at once: the gap is information for
+  SfM, not a reason to drop a sharp frame. For ``max_track_gap`` frames after a break the
+  reference from before it is tried first, so one bad frame does not split a segment. Only a
+  well-exposed frame with nothing to track in it (no corners: fogged, featureless) is dropped
+  as *untracked*.
 
-Thresholds are relative to the video itself: a frame is *blurred* when its sharpness falls below
-``blur_rel`` times a high percentile of the sharpness of well-exposed frames within
-±``blur_window_s`` (or below ``blur_global_rel`` times the video-wide median); the redundancy
-threshold is a fraction of the image diagonal. Frames are kept greedily: a good frame is kept when
-the scene moved at least ``min_motion`` since the last kept frame (the sharpest of the next
-``lookahead`` eligible frames is taken); ``max_frames`` raises that spacing until the selection
-fits, so kept frames still cover the whole video.
+Thresholds are relative to the video itself. The raw sharpness of a frame depends on what it
+shows (vessels or a smooth patch, near or far) as much as on blur, so frames are compared on the
+content they share: each frame against the frames 1, 2, 4, 8, ... before it in its segment (up
+to ``blur_window_s``), both measured on the cells of the scene they both see, normalised by each
+cell's brightness; a robust least-squares fit of all these ratios gives a content-matched
+sharpness per frame. A frame is *blurred* when that falls below ``blur_rel`` times the
+``blur_percentile`` of its segment's frames within ±``blur_window_s`` (or below
+``blur_global_rel`` times that of the whole segment: long blurred stretches); a frame matched
+with no other (tracking failed on both sides) only when its raw sharpness falls below
+``blur_unmatched_rel`` times that of its neighbours. The redundancy threshold is a fraction of
+the image diagonal. Frames are kept greedily: a good frame is kept when the scene moved at
+least ``min_motion`` since the last kept frame; a sharper frame among the next ``lookahead``
+may be taken instead only while the motion stays within twice ``min_motion``, and after a jump
+(dropped frames, a tracking break) the last frame before it is kept too when that splits the
+gap. ``max_frames`` raises the spacing until the selection fits, so kept frames still cover
+the whole video.
 
 The video is decoded three times, streaming (FOV/brightness probe on a sample, scoring, writing
-the kept frames), so memory does not grow with its length.
+the kept frames), so memory grows only by a few numbers per frame.
 
 Outputs in ``out_dir`` (written atomically): ``f000123.png`` per kept frame (0-based index of the
 frame in the video, BGR as decoded), ``frames.csv`` with one row per decoded frame
@@ -42,6 +56,7 @@ import csv
 import logging
 import math
 import time
+from array import array
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
@@ -50,6 +65,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
@@ -71,6 +88,17 @@ REASONS = ("kept", "outside_range", "dark", "overexposed", "blurred", "untracked
            "over_limit")
 PROGRESS_EVERY_S = 5.0
 _MIN_TRACK_POINTS = 8
+# share of a frame's scored area two frames must share for a content-matched comparison
+_MIN_OVERLAP = 0.25
+# sharpness is compared on cells of this many analysis pixels a side
+_CELL_PX = 4
+# at most this many frames back for sharpness comparisons (memory: one cell map per frame)
+_MAX_PAIR_REACH = 256
+# weak pull of the content-matched log-sharpness towards the raw one; Huber scale of the fit
+_QUALITY_PRIOR = 0.01
+_QUALITY_HUBER = 0.2
+# lookahead never lets the motion since the last kept frame exceed this times min_motion
+_LOOKAHEAD_MAX_REL = 2.0
 
 
 @dataclass(frozen=True)
@@ -106,26 +134,36 @@ class FramesConfig:
     # Drop a frame as "overexposed" when more than this share of its FOV is saturated.
     max_saturated: float = 0.3
     # Drop a frame as "blurred" when its sharpness is below blur_rel times the local reference:
-    # the blur_percentile of the sharpness of well-exposed frames within ±blur_window_s.
+    # the blur_percentile of the sharpness of well-exposed frames of its tracking segment within
+    # ±blur_window_s, all compared on the scene content they share (see the module docstring).
     blur_rel: float = 0.4
-    # Half-width in seconds of the window of the local sharpness reference.
+    # Half-width in seconds of the window of the local sharpness reference (and how far back
+    # frames are compared).
     blur_window_s: float = 2.0
     # Percentile of sharpness in the window used as the local reference ("sharp frames here").
     blur_percentile: float = 75.0
-    # Also "blurred" below this times the video-wide median sharpness (long blurred stretches).
+    # Also "blurred" below this times the blur_percentile of the sharpness of its whole tracking
+    # segment (long blurred stretches).
     blur_global_rel: float = 0.2
+    # A frame that could not be compared with any overlapping frame (tracking failed before and
+    # after it) is "blurred" below this times the median raw sharpness of the two well-exposed
+    # frames on each side (lower than blur_rel: their content differs).
+    blur_unmatched_rel: float = 0.15
     # Target spacing: a good frame is "redundant" until the scene moved by this fraction of the
     # image diagonal since the last kept frame (median displacement of FOV points).
     min_motion: float = 0.03
     # Minimum distance between kept frames, in frames (1 = no constraint).
     min_gap: int = 1
     # Once min_motion (> 0) is reached at frame i, keep the sharpest eligible frame among
-    # i .. i + lookahead (0 = keep the first frame that moved enough).
+    # i .. i + lookahead whose motion since the last kept frame stays within twice min_motion
+    # (0 = keep the first frame that moved enough).
     lookahead: int = 2
     # Keep at most this many frames (0 = no limit). If more qualify, the spacing is raised until
     # they fit; frames lost that way are marked "over_limit".
     max_frames: int = 0
-    # After this many consecutive untrackable frames, tracking restarts (new segment).
+    # A frame that cannot be tracked starts a new segment (and is kept if good); for this many
+    # frames after such a break, tracking first tries the frame before it again (so a bad frame
+    # or two in between does not split a segment).
     max_track_gap: int = 5
     # Corners tracked between consecutive frames.
     track_points: int = 200
@@ -152,6 +190,7 @@ class FramesConfig:
             (self.blur_window_s > 0, "blur_window_s must be > 0"),
             (0 < self.blur_percentile <= 100, "blur_percentile must be in (0, 100]"),
             (0 <= self.blur_global_rel < 1, "blur_global_rel must be in [0, 1)"),
+            (0 <= self.blur_unmatched_rel < 1, "blur_unmatched_rel must be in [0, 1)"),
             (self.min_motion >= 0, "min_motion must be >= 0"),
             (self.min_gap >= 1, "min_gap must be >= 1"),
             (self.lookahead >= 0, "lookahead must be >= 0"),
@@ -296,6 +335,11 @@ def _probe(video: Path, cfg: FramesConfig, camera: Camera | None) -> _Probe:
     static = static_pixels(variation, score > 0, cfg.static_rel)
     if static is not None:
         probe.static_share = float(np.count_nonzero(static)) / max(1, np.count_nonzero(score))
+        # also the reach of the Laplacian of Gaussian around them: the crisp edges of an
+        # overlay must not leak into the sharpness
+        reach = 2 * math.ceil(2 * cfg.sharpness_sigma) + 1
+        static = cv2.dilate(static.view(np.uint8), cv2.getStructuringElement(
+            cv2.MORPH_ELLIPSE, (reach, reach))) > 0
         score = np.where(static, 0, score).astype(np.uint8)
     # one more pixel for the Laplacian's support
     probe.score_mask = erode(score, 1) > 0
@@ -327,8 +371,66 @@ class _Scores:
     sharpness: np.ndarray
     saturated: np.ndarray
     dark: np.ndarray
-    transform: np.ndarray  # (n, 3, 3) analysis px, frame -> segment reference; NaN = untracked
+    transform: np.ndarray  # (n, 3, 3) analysis px, segment start -> frame; NaN = untracked
     segment: np.ndarray  # int, -1 = untracked
+    # content-matched sharpness (see _quality); equal to sharpness where unmatched
+    quality: np.ndarray
+    matched: np.ndarray  # bool: compared with at least one overlapping frame of its segment
+
+
+@dataclass
+class _Look:
+    """A frame's sharpness map on a grid of cells, for comparisons on shared content."""
+
+    energy: np.ndarray  # float32 cells: mean squared LoG x share of valid pixels
+    weight: np.ndarray  # float32 cells: share of valid pixels (FOV, no glints)
+    grey2: np.ndarray  # float32 cells: squared mean grey x share of valid pixels
+    to_px: np.ndarray  # 3x3: cell coordinates -> analysis pixels
+    sharpness: float
+
+    @staticmethod
+    def of(energy: np.ndarray, valid: np.ndarray, grey: np.ndarray, sharpness: float) -> _Look:
+        h, w = valid.shape
+        cw, ch = max(1, w // _CELL_PX), max(1, h // _CELL_PX)
+        v = valid.astype(np.float32)
+
+        def cells(a: np.ndarray) -> np.ndarray:
+            return cv2.resize(a, (cw, ch), interpolation=cv2.INTER_AREA)
+
+        sx, sy = w / cw, h / ch
+        to_px = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
+        weight = cells(v)
+        mean = cells(grey.astype(np.float32) * v) / np.maximum(weight, 1e-6)
+        return _Look(cells(energy * v), weight, np.square(mean) * weight, to_px, sharpness)
+
+
+def _matched_ratio(a: _Look, b: _Look, step: np.ndarray) -> float:
+    """Sharpness of ``b`` over that of ``a``, both measured on the part of the scene they share.
+
+    ``step`` (3x3) maps ``a``'s analysis pixels to ``b``'s. NaN when they share less than
+    _MIN_OVERLAP of either frame's scored area. The same mucosa seen twice has the same detail:
+    a ratio well below 1 means ``b`` is blurred, whatever the content (a featureless patch is
+    not mistaken for blur, nor a vessel-rich one for sharpness).
+    """
+    ch, cw = a.weight.shape
+    m = np.linalg.inv(a.to_px) @ step @ a.to_px
+    va, vb = a.weight > 0.5, b.weight > 0.5
+    a_in_b = cv2.warpAffine(va.view(np.uint8), m[:2], (cw, ch), flags=cv2.INTER_NEAREST) > 0
+    b_in_a = cv2.warpAffine(vb.view(np.uint8), np.linalg.inv(m)[:2], (cw, ch),
+                            flags=cv2.INTER_NEAREST) > 0
+    oa, ob = va & b_in_a, vb & a_in_b
+    if (np.count_nonzero(oa) < _MIN_OVERLAP * np.count_nonzero(va)
+            or np.count_nonzero(ob) < _MIN_OVERLAP * np.count_nonzero(vb)):
+        return math.nan
+
+    def energy(look: _Look, cells: np.ndarray) -> float:
+        # normalised by the brightness of each cell: the same mucosa lit differently (the
+        # vignetting, the light falling off) keeps its value
+        grey2 = float(look.grey2[cells].sum())
+        return float(look.energy[cells].sum()) / grey2 * 1e4 if grey2 > 0 else 0.0
+
+    ea = energy(a, oa)
+    return energy(b, ob) / ea if ea > 0 else math.nan
 
 
 def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
@@ -340,6 +442,14 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
     transforms: list[np.ndarray] = []
     segments: list[int] = []
     tracker = _Tracker(probe, cfg)
+    # sharpness comparisons: each frame against the frames 1, 2, 4, 8, ... before it in its
+    # segment, up to blur_window_s back (the local sharpness reference window)
+    fps = probe.fps if probe.fps > 0 else 25.0
+    reach = min(_MAX_PAIR_REACH, max(1, round(cfg.blur_window_s * fps)))
+    offsets = [1 << e for e in range(reach.bit_length()) if 1 << e <= reach]
+    recent: dict[int, tuple[int, np.ndarray, _Look]] = {}
+    # (earlier frame, frame, log sharpness ratio) per comparison
+    pairs = (array("q"), array("q"), array("d"))
     # specular glints (saturated blobs) and their halos: excluded from sharpness and tracking
     k = 2 * max(2, round(probe.aw / 60)) + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
@@ -364,18 +474,33 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
             if saturated_px.any():
                 glints = cv2.dilate(saturated_px.view(np.uint8), kernel) > 0
                 valid = valid & ~glints
+            usable = dark[-1] <= cfg.max_dark and sat[-1] <= cfg.max_saturated
+            look = None
             if mean >= 1.0 and valid.any():
                 smooth = grey.astype(np.float32)
                 if cfg.sharpness_sigma > 0:
                     smooth = cv2.GaussianBlur(smooth, (0, 0), cfg.sharpness_sigma)
-                lap = cv2.Laplacian(smooth, cv2.CV_32F)
-                sharp.append(float(np.mean(np.square(lap[valid]))) * (100.0 / mean) ** 2)
+                energy = np.square(cv2.Laplacian(smooth, cv2.CV_32F))
+                sharp.append(float(np.mean(energy[valid])) * (100.0 / mean) ** 2)
+                if usable:
+                    look = _Look.of(energy, valid, grey, sharp[-1])
             else:
                 sharp.append(0.0)
-            usable = dark[-1] <= cfg.max_dark and sat[-1] <= cfg.max_saturated
-            seg, transform = tracker.add(grey, glints, usable)
+            seg, transform = tracker.add(grey, glints, usable, look)
             segments.append(seg)
             transforms.append(transform)
+            recent.pop(index - reach - 1, None)
+            if seg >= 0 and look is not None:
+                for off in offsets:
+                    earlier = recent.get(index - off)
+                    if earlier is not None and earlier[0] == seg:
+                        ratio = _matched_ratio(earlier[2], look,
+                                               transform @ np.linalg.inv(earlier[1]))
+                        if ratio > 0:
+                            pairs[0].append(index - off)
+                            pairs[1].append(index)
+                            pairs[2].append(math.log(ratio))
+                recent[index] = (seg, transform, look)
             times.append(frame_time(cap, index, info.fps))
             index += 1
             now = time.perf_counter()
@@ -386,25 +511,89 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
     finally:
         cap.release()
     n = len(times)
+    sharpness = np.asarray(sharp)
+    quality, matched = _quality(sharpness, pairs)
     return _Scores(
-        np.asarray(times), np.asarray(sharp), np.asarray(sat), np.asarray(dark),
+        np.asarray(times), sharpness, np.asarray(sat), np.asarray(dark),
         np.stack(transforms) if n else np.zeros((0, 3, 3)), np.asarray(segments, dtype=int),
+        quality, matched,
     )
 
 
+def _quality(sharpness: np.ndarray, pairs: tuple[array, array, array],
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Content-matched sharpness: the values whose ratios best agree with the measured ones.
+
+    Each comparison (j, i, log r) in ``pairs`` says "frame i is r times as sharp as frame j on
+    the content they share". Log-sharpness values q are fitted to all pairs (robust least squares, Huber
+    weights), with a weak pull towards the raw log-sharpness that fixes each segment's overall
+    level. Many overlapping pairs per frame keep the scale from drifting along a segment the
+    way a chain of consecutive ratios would. Returns (quality, matched).
+    """
+    n = len(sharpness)
+    raw = np.log(np.maximum(sharpness, 1e-12))
+    matched = np.zeros(n, bool)
+    if not pairs[0]:
+        return np.exp(raw), matched
+    j, i, r = (np.frombuffer(a, dtype=a.typecode) for a in pairs)
+    matched[i] = matched[j] = True
+    idx = np.flatnonzero(matched)
+    pos = np.full(n, -1)
+    pos[idx] = np.arange(len(idx))
+    rows = np.arange(len(r))
+    d = sp.csr_matrix((np.r_[np.ones(len(r)), -np.ones(len(r))],
+                       (np.r_[rows, rows], np.r_[pos[i], pos[j]])), shape=(len(r), len(idx)))
+    prior = _QUALITY_PRIOR * sp.identity(len(idx), format="csr")
+    w = np.ones(len(r))
+    q = raw[idx]
+    for _ in range(4):
+        dw = d.T.multiply(w)
+        q = spla.spsolve((dw @ d + prior).tocsc(), dw @ r + _QUALITY_PRIOR * raw[idx])
+        res = np.abs(d @ q - r)
+        w = np.minimum(1.0, _QUALITY_HUBER / np.maximum(res, 1e-12))
+    out = np.exp(raw)
+    out[idx] = np.exp(q)
+    return out, matched
+
+
+@dataclass
+class _Ref:
+    """A reference frame of the tracker."""
+
+    grey: np.ndarray  # gain-normalised analysis grey
+    pts: np.ndarray  # corners to track from it
+    transform: np.ndarray  # segment start -> this frame (analysis px)
+    segment: int
+    look: _Look | None
+    index: int  # frame number
+
+
 class _Tracker:
-    """Chains frame-to-frame similarity transforms; restarts after a long tracking break."""
+    """Chains frame-to-frame similarity transforms into segments.
+
+    Every frame is tracked against the reference (the last good frame). A usable frame that
+    cannot be tracked starts a new segment at once: it is not lost, only the motion between it
+    and the frames before is unknown. For ``max_track_gap`` frames after such a break the
+    reference from before the break is tried first, so a bad frame or two in between does not
+    split a segment. Dark or overexposed frames, and frames much less sharp than the reference
+    on the content they share (ratio below ``blur_rel``), are tracked through but never become
+    the reference.
+    """
 
     def __init__(self, probe: _Probe, cfg: FramesConfig) -> None:
         self.mask = probe.track_mask
         self.max_points = cfg.track_points
         self.min_distance = max(3.0, probe.aw / 60)
         self.max_gap = cfg.max_track_gap
-        self.ref: np.ndarray | None = None
-        self.ref_pts: np.ndarray | None = None
-        self.ref_transform = np.eye(3)
+        self.keep_rel = cfg.blur_rel
+        # tolerance of the similarity fit: the parallax of a curved wall seen from close up
+        self.ransac_px = max(1.5, probe.aw / 160)
+        self.ref: _Ref | None = None
+        self.held: _Ref | None = None  # the reference from before a tracking break
+        self.held_age = 0
         self.segment = -1
-        self.failures = 0
+        self.index = -1
+        self.velocity: np.ndarray | None = None  # last step between consecutive frames
         self.lk = {"winSize": (21, 21), "maxLevel": 3,
                    "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
 
@@ -418,21 +607,30 @@ class _Tracker:
             return None
         return pts.astype(np.float32)
 
-    def _track(self, grey: np.ndarray) -> np.ndarray | None:
-        assert self.ref is not None and self.ref_pts is not None
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.ref, grey, self.ref_pts, None, **self.lk)
+    def _track(self, ref: _Ref, grey: np.ndarray, guess: np.ndarray | None = None,
+               ) -> np.ndarray | None:
+        """Similarity transform (3x3) from ``ref`` to ``grey``, or None.
+
+        ``guess`` (3x3, optional) is where the corners are expected to have gone.
+        """
+        if guess is None:
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(ref.grey, grey, ref.pts, None, **self.lk)
+        else:
+            start = cv2.transform(ref.pts, guess[:2]).astype(np.float32)
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(ref.grey, grey, ref.pts, start,
+                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self.lk)
         if p1 is None:
             return None
-        p0, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self.ref, p1, None, **self.lk)
+        p0, st2, _ = cv2.calcOpticalFlowPyrLK(grey, ref.grey, p1, None, **self.lk)
         if p0 is None:
             return None
-        fb = np.linalg.norm((p0 - self.ref_pts).reshape(-1, 2), axis=1)
+        fb = np.linalg.norm((p0 - ref.pts).reshape(-1, 2), axis=1)
         good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < 1.0)
         if np.count_nonzero(good) < _MIN_TRACK_POINTS:
             return None
-        src, dst = self.ref_pts[good].reshape(-1, 2), p1[good].reshape(-1, 2)
+        src, dst = ref.pts[good].reshape(-1, 2), p1[good].reshape(-1, 2)
         a, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
-                                                 ransacReprojThreshold=1.5)
+                                                 ransacReprojThreshold=self.ransac_px)
         if a is None or inliers is None:
             return None
         n_in = int(np.count_nonzero(inliers))
@@ -441,36 +639,51 @@ class _Tracker:
         return np.vstack([a, [0.0, 0.0, 1.0]])
 
     def add(self, grey: np.ndarray, glints: np.ndarray | None = None, usable: bool = True,
-            ) -> tuple[int, np.ndarray]:
-        """Track ``grey`` against the reference frame; returns (segment, transform or NaNs).
+            look: _Look | None = None) -> tuple[int, np.ndarray]:
+        """Track ``grey``; returns (segment, transform), (-1, NaNs) if untracked.
 
         ``glints`` (bool image, optional) marks specular highlights: no corners there.
         ``usable`` False (a dark or overexposed frame) is tracked if possible but never becomes
-        the reference nor starts a segment.
+        the reference nor starts a segment; neither does a frame without ``look``.
         """
         mean = float(grey[self.mask > 0].mean()) if self.mask.any() else float(grey.mean())
         if mean >= 1.0:  # gain-normalise: auto-exposure steps must not break Lucas-Kanade
             grey = cv2.convertScaleAbs(grey, alpha=128.0 / mean)
-        step = self._track(grey) if self.ref is not None else None
-        if step is not None:
-            transform = step @ self.ref_transform
-            self.failures = 0
-        elif usable and (self.ref is None or self.failures + 1 >= self.max_gap):
-            pts = self._corners(grey, glints)
-            if pts is None:  # nothing to track here (flat): stay untracked
-                self.failures += 1
-                return -1, np.full((3, 3), np.nan)
-            self.segment += 1
-            self.failures = 0
-            self.ref, self.ref_pts, self.ref_transform = grey, pts, np.eye(3)
-            return self.segment, np.eye(3)
-        else:
-            self.failures += 1
+        self.index += 1
+        if self.held is not None:
+            self.held_age += 1
+            if self.held_age > self.max_gap:
+                self.held = None
+        for ref in (self.held, self.ref):
+            if ref is None:
+                continue
+            step = self._track(ref, grey)
+            consecutive = ref.index == self.index - 1
+            if step is None and consecutive and self.velocity is not None:
+                # a fast, steady sweep: look where the last step would have taken the corners
+                step = self._track(ref, grey, self.velocity)
+            if step is None:
+                continue
+            if consecutive:
+                self.velocity = step
+            if ref is self.held:  # back on the scene from before the break
+                self.ref, self.held = ref, None
+            transform = step @ ref.transform
+            if usable and look is not None and not (
+                    ref.look is not None
+                    and _matched_ratio(ref.look, look, step) < self.keep_rel):
+                pts = self._corners(grey, glints)
+                if pts is not None:
+                    self.ref = _Ref(grey, pts, transform, ref.segment, look, self.index)
+            return ref.segment, transform
+        pts = self._corners(grey, glints) if usable and look is not None else None
+        if pts is None:  # dark, overexposed or featureless: stay untracked
             return -1, np.full((3, 3), np.nan)
-        pts = self._corners(grey, glints) if usable else None
-        if pts is not None:  # a frame without corners is tracked but not used as reference
-            self.ref, self.ref_pts, self.ref_transform = grey, pts, transform
-        return self.segment, transform
+        if self.held is None and self.ref is not None:
+            self.held, self.held_age = self.ref, 0
+        self.segment += 1
+        self.ref = _Ref(grey, pts, np.eye(3), self.segment, look, self.index)
+        return self.segment, np.eye(3)
 
 
 # --------------------------------------------------------------------------- selection
@@ -504,14 +717,8 @@ def _select(s: _Scores, cfg: FramesConfig, probe: _Probe) -> _Selection:
         if fps <= 0 and n > 1 and s.time_s[-1] > s.time_s[0]:
             fps = (n - 1) / (s.time_s[-1] - s.time_s[0])
         half = max(1, round(cfg.blur_window_s * (fps if fps > 0 else 25.0)))
-        ex_sharp = s.sharpness[exposed]
-        lo = np.searchsorted(exposed, exposed - half, side="left")
-        hi = np.searchsorted(exposed, exposed + half, side="right")
-        local = np.array([np.percentile(ex_sharp[a:b], cfg.blur_percentile)
-                          for a, b in zip(lo, hi, strict=True)])
-        blurred = ((ex_sharp < cfg.blur_rel * local)
-                   | (ex_sharp < cfg.blur_global_rel * sharp_median))
-        reason[exposed[blurred]] = "blurred"
+        reason[exposed[_blurred(s, exposed, half, cfg)]] = "blurred"
+    # usable but nothing to track in it (no corners: featureless, fogged)
     reason[(reason == "") & (s.segment < 0)] = "untracked"
 
     eligible = np.flatnonzero(reason == "")
@@ -535,14 +742,32 @@ def _select(s: _Scores, cfg: FramesConfig, probe: _Probe) -> _Selection:
         p = 0
         while p < len(eligible):
             i = int(eligible[p])
-            if last >= 0 and (i - last < cfg.min_gap or motion(last, i) < thr):
+            moved = motion(last, i) if last >= 0 else math.inf
+            if last >= 0 and (i - last < cfg.min_gap or moved < thr):
                 p += 1
                 continue
+            bound = _LOOKAHEAD_MAX_REL * thr
+            if thr > 0 and moved > bound and p > 0:
+                # a jump (frames in between dropped, fast motion, a tracking break): keep the
+                # last frame before it as well when that splits the gap (both parts clearly
+                # shorter) or, across a break, when it moved on from the last kept frame
+                prev = int(eligible[p - 1])
+                before = motion(last, prev)
+                splits = (max(before, motion(prev, i)) <= 0.8 * moved if math.isfinite(moved)
+                          else 0.5 * thr <= before < math.inf)
+                if splits and prev > last and prev - last >= cfg.min_gap \
+                        and i - prev >= cfg.min_gap:
+                    kept.append(prev)
+                    last = prev
+                    continue
+            # a sharper frame a little later may replace i, as long as the gap from the last
+            # kept frame stays within _LOOKAHEAD_MAX_REL times the threshold
             best, best_p, q = i, p, p + 1
-            while thr > 0 and q < len(eligible) and eligible[q] <= i + cfg.lookahead:
+            while thr > 0 and moved <= bound and q < len(eligible) \
+                    and eligible[q] <= i + cfg.lookahead:
                 j = int(eligible[q])
-                if (s.segment[j] == s.segment[i] and s.sharpness[j] > s.sharpness[best]
-                        and (last < 0 or motion(last, j) >= thr)):
+                if (s.segment[j] == s.segment[i] and s.quality[j] > s.quality[best]
+                        and thr <= motion(last, j) <= bound):
                     best, best_p = j, q
                 q += 1
             kept.append(best)
@@ -587,6 +812,55 @@ def _select(s: _Scores, cfg: FramesConfig, probe: _Probe) -> _Selection:
             last = i
     return _Selection(sorted(kept), [str(r) for r in reason], motion_px, sharp_median,
                       base_thr, thr)
+
+
+def _blurred(s: _Scores, exposed: np.ndarray, half: int, cfg: FramesConfig) -> np.ndarray:
+    """Which of the well-exposed frames ``exposed`` are blurred (bool per entry).
+
+    A frame compared with overlapping frames of its segment, two or more of them within
+    ±``half`` frames, is judged on its content-matched ``quality``: below ``blur_rel`` times
+    the ``blur_percentile`` of theirs, or below ``blur_global_rel`` times that of the whole
+    segment (long blurred stretches). Any other frame (tracking failed before and after it) is
+    judged on its raw sharpness against the two exposed frames on each side outside its segment
+    and not blurred themselves (``blur_unmatched_rel``).
+    """
+    seg, quality, sharp = s.segment[exposed], s.quality[exposed], s.sharpness[exposed]
+    matched = s.matched[exposed]
+    seg_ref = {int(g): float(np.percentile(quality[(seg == g) & matched], cfg.blur_percentile))
+               for g in np.unique(seg[matched])}
+    lo = np.searchsorted(exposed, exposed - half, side="left")
+    hi = np.searchsorted(exposed, exposed + half, side="right")
+    out = np.zeros(len(exposed), bool)
+    unmatched = []
+    for k in range(len(exposed)):
+        g = int(seg[k])
+        if matched[k]:
+            window = slice(lo[k], hi[k])
+            same = quality[window][(seg[window] == g) & matched[window]]
+            if len(same) >= 3:
+                local = float(np.percentile(same, cfg.blur_percentile))
+                out[k] = bool(quality[k] < cfg.blur_rel * local
+                              or quality[k] < cfg.blur_global_rel * seg_ref[g])
+                continue
+        unmatched.append(k)
+    # the others against their neighbours outside their segment; a neighbour found blurred is
+    # no reference (two bad frames in a row), hence a few rounds
+    for _ in range(3):
+        changed = False
+        for k in unmatched:
+            if out[k]:
+                continue
+            g = int(seg[k])
+            a, b = max(0, k - 16), min(len(exposed), k + 17)
+            other = ((seg[a:b] != g) | (g < 0)) & ~out[a:b]
+            before = a + np.flatnonzero(other[:k - a])[-2:]
+            after = k + 1 + np.flatnonzero(other[k + 1 - a:])[:2]
+            near = sharp[np.r_[before, after]]
+            if len(near) and sharp[k] < cfg.blur_unmatched_rel * float(np.median(near)):
+                out[k] = changed = True
+        if not changed:
+            break
+    return out
 
 
 def _thin(kept: list[int], m: int) -> list[int]:

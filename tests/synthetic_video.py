@@ -11,20 +11,29 @@ import numpy as np
 WIDTH, HEIGHT = 320, 180
 
 
-def texture(height: int, width: int, seed: int = 0, contrast: float = 1.0) -> np.ndarray:
-    """A colour, mucosa-like texture (multi-scale blobs and thin 'vessels'), uint8 BGR."""
+def texture(height: int, width: int, seed: int = 0, contrast: float = 1.0,
+            detail: tuple[float, float] | None = None) -> np.ndarray:
+    """A colour, mucosa-like texture (multi-scale blobs and thin 'vessels'), uint8 BGR.
+
+    ``detail`` = (left, right) scales the fine structure (small blobs and vessels) linearly
+    across the width: e.g. (1, 0.1) goes from vessel-rich mucosa to a smooth, featureless patch,
+    everything in focus.
+    """
     rng = np.random.default_rng(seed)
     acc = np.zeros((height, width), np.float32)
+    ramp = None if detail is None else np.linspace(*detail, width, dtype=np.float32)[None, :]
     for sigma, weight in ((12.0, 1.0), (4.0, 0.7), (1.5, 0.5)):
         noise = rng.standard_normal((height, width)).astype(np.float32)
         noise = cv2.GaussianBlur(noise, (0, 0), sigma)
-        acc += weight * noise / (noise.std() + 1e-6)
+        layer = weight * noise / (noise.std() + 1e-6)
+        acc += layer if ramp is None or sigma > 10 else layer * ramp
     vessels = np.zeros((height, width), np.uint8)
     for _ in range(max(4, width * height // 4000)):
         pts = np.cumsum(rng.normal(0, 6, (12, 2)), axis=0) + rng.uniform((0, 0), (width, height))
         cv2.polylines(vessels, [pts.astype(np.int32).reshape(-1, 1, 2)], False, 255, 1,
                       cv2.LINE_AA)
-    acc = acc / (acc.std() + 1e-6) - 1.2 * vessels.astype(np.float32) / 255
+    lines = vessels.astype(np.float32) if ramp is None else vessels.astype(np.float32) * ramp
+    acc = acc / (acc.std() + 1e-6) - 1.2 * lines / 255
     grey = 128 + 40 * contrast * acc
     bgr = np.stack([0.55 * grey, 0.65 * grey, 1.0 * grey + 20], axis=-1)
     return np.clip(bgr, 0, 255).astype(np.uint8)
@@ -53,17 +62,23 @@ def circle_border(frame: np.ndarray, cx: float, cy: float, r: float) -> np.ndarr
 def pan_frames(
     n: int, speed: float = 4.0, size: tuple[int, int] = (WIDTH, HEIGHT), seed: int = 0,
     replace: Mapping[int, str] | None = None, circle: tuple[float, float, float] | None = None,
+    detail: tuple[float, float] | None = None, jumps: Mapping[int, float] | None = None,
 ) -> list[np.ndarray]:
     """``n`` frames panning right over a texture at ``speed`` px/frame.
 
     ``replace`` maps frame index to a defect: "blur" (Gaussian sigma 3), "black", "white",
     "dup" (exact copy of the previous frame). ``circle`` = (cx, cy, r) blacks out the outside.
+    ``detail`` is passed to :func:`texture` (its fine structure fading along the pan).
+    ``jumps`` maps frame index to an extra leap in px from that frame on (the camera moving
+    too fast for frame-to-frame tracking).
     """
     w, h = size
-    big = texture(h, w + int(np.ceil(speed * n)) + 2, seed)
+    jumps = jumps or {}
+    big = texture(h, w + int(np.ceil(speed * n + sum(jumps.values()))) + 2, seed,
+                  detail=detail)
     frames = []
     for i in range(n):
-        x = speed * i
+        x = speed * i + sum(v for k, v in jumps.items() if k <= i)
         m = np.float32([[1, 0, -x], [0, 1, 0]])
         f = cv2.warpAffine(big, m, (w, h), flags=cv2.INTER_LINEAR)
         kind = (replace or {}).get(i)

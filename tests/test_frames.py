@@ -14,6 +14,7 @@ import synthetic_video as sv
 from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.frames import CSV_COLUMNS, FramesConfig, extract_frames, read_frames_csv
+from cystomap.phantom import PhantomConfig, default_camera, generate_session
 from cystomap.settings import from_mapping
 
 N = 60
@@ -90,6 +91,8 @@ def test_default_settings_space_frames(pan_video: Path, tmp_path: Path) -> None:
     assert 14 <= len(kept) <= 20
     gaps = np.diff([r["frame"] for r in kept])
     assert gaps.min() >= 2 and gaps.max() <= 6  # 3 frames + lookahead 2, +1 after a drop
+    # a sharper frame further on never stretches the gap beyond twice min_motion
+    assert all(r["motion_px"] <= 2 * threshold for r in kept[1:])
 
 
 def test_spacing_and_min_gap(pan_video: Path, tmp_path: Path) -> None:
@@ -176,6 +179,75 @@ def test_scope_like_video(tmp_path: Path) -> None:
     assert all(threshold <= r["motion_px"] < 2.5 * threshold for r in kept[1:]
                if r["frame"] != 44)  # the first frame after the dip may have moved further
     assert 8 <= len(kept) <= 16
+
+
+def test_content_changes_and_jumps_are_not_drops(tmp_path: Path) -> None:
+    """Sharpness that falls because the scene has less detail (vessel-rich mucosa giving way to
+    a smooth patch, all in focus) is not blur, and a jump too large to track starts a new
+    segment instead of losing frames; truly blurred frames go, in rich and in smooth parts."""
+    frames = sv.pan_frames(80, SPEED, seed=4, detail=(1.0, 0.05), jumps={40: 90.0},
+                           replace={15: "blur", 65: "blur"})
+    video = sv.write_video(tmp_path / "vary.mp4", frames, FPS)
+    out = tmp_path / "frames"
+    cfg = FramesConfig()
+    rows = _run(video, out, cfg)
+    assert rows[75]["sharpness"] < 0.3 * rows[5]["sharpness"]  # raw sharpness falls 3x+
+    assert {r["frame"]: r["reason"] for r in rows if r["reason"] not in ("kept", "redundant")} \
+        == {15: "blurred", 65: "blurred"}
+    assert rows[40]["kept"] and rows[40]["motion_px"] is None  # first frame after the jump
+    assert json.loads((out / "frames.json").read_text())["segments"] == 2
+    threshold = cfg.min_motion * DIAGONAL
+    kept = [r for r in rows if r["kept"]]
+    assert all(r["motion_px"] <= 2 * threshold for r in kept[1:] if r["motion_px"] is not None)
+    assert all(r["motion_px"] < 2 * threshold for r in rows if r["reason"] == "redundant")
+
+
+@pytest.fixture(scope="module")
+def phantom_videos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A clean and a spoiled (defocused and black frames, motion blur) phantom session: sparse
+    video (10 fps, the camera turning ~11 deg a frame), small and fast to render."""
+    root = tmp_path_factory.mktemp("phantom")
+    fast = {"seed": 5, "n_frames": 80, "mesh_edge_mm": 4.0, "cube_face_px": 512,
+            "atlas_height": 64, "threads": 1}
+    camera = default_camera(256, 144)
+    return {
+        "clean": generate_session(root / "clean", 1, PhantomConfig(**fast), camera),
+        "spoiled": generate_session(root / "spoiled", 1, PhantomConfig(
+            **fast, bad_frame_fraction=0.1, motion_blur_px=3.0), camera),
+    }
+
+
+def test_phantom_keeps_every_good_frame(phantom_videos: dict[str, Path], tmp_path: Path) -> None:
+    """Nothing of a clean session is called blurred or untracked (its raw sharpness varies
+    several-fold with the content and distance; consecutive frames often cannot be tracked),
+    and the gaps between kept frames stay within twice min_motion where the video allows."""
+    cfg = FramesConfig()
+    out = tmp_path / "frames"
+    rows = _run(phantom_videos["clean"] / "video.mp4", out, cfg)
+    assert {r["reason"] for r in rows} <= {"kept", "redundant"}
+    assert sum(r["kept"] for r in rows) >= 0.9 * len(rows)  # the camera moves fast
+    sharp = np.array([r["sharpness"] for r in rows])
+    assert sharp.max() > 4 * sharp.min()
+    threshold = cfg.min_motion * math.hypot(256, 144)
+    assert all(r["motion_px"] < 2 * threshold for r in rows if r["reason"] == "redundant")
+    last = 0
+    for r in rows[1:]:
+        if r["kept"]:  # a longer gap only for a single step or a tracking break
+            assert r["motion_px"] is None or r["motion_px"] <= 2 * threshold \
+                or r["frame"] == last + 1, r
+            last = r["frame"]
+
+
+def test_phantom_drops_exactly_the_bad_frames(phantom_videos: dict[str, Path],
+                                              tmp_path: Path) -> None:
+    video = phantom_videos["spoiled"]
+    truth = json.loads((video / "truth.json").read_text())
+    expected = {b["frame"]: "dark" if b["kind"] == "black" else "blurred"
+                for b in truth["bad_frames"]}
+    assert len(expected) == 8 and set(expected.values()) == {"dark", "blurred"}
+    rows = _run(video / "video.mp4", tmp_path / "frames", FramesConfig())
+    assert {r["frame"]: r["reason"] for r in rows
+            if r["reason"] not in ("kept", "redundant")} == expected
 
 
 def test_static_camera_keeps_one_frame(tmp_path: Path) -> None:
