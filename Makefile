@@ -40,6 +40,7 @@ lint: setup
 ## full-size benchmarks; writes tables under results/bench/
 bench: setup
 	$(BIN)/python -m cystomap.bench --out results/bench
+	$(BIN)/python -m cystomap.bench_sfm --out results/bench
 
 clean:
 	rm -rf results logs benchmarks .snakemake

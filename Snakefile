@@ -16,6 +16,9 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/phantom.smk"
 include: "workflow/rules/frames.smk"
 include: "workflow/rules/preprocess.smk"
+include: "workflow/rules/sfm.smk"
+include: "workflow/rules/mesh.smk"
+include: "workflow/rules/atlas.smk"
 include: "workflow/rules/evaluate.smk"
 
 

@@ -41,7 +41,7 @@ class Workflow:
 
     def planned_jobs(self, *targets: str) -> dict[str, int]:
         """Rule -> job count that a dry run would execute."""
-        proc = self.run("-n", "--quiet", "rules", *targets)
+        proc = self.run(*targets, "-n", "--quiet", "rules")
         return parse_job_counts(proc.stdout + proc.stderr)
 
 

@@ -14,12 +14,14 @@ from cystomap.mesh import MeshConfig
 from cystomap.phantom import PhantomConfig
 from cystomap.preprocess import PreprocessConfig
 from cystomap.sessions import PHANTOM_STUDY_KEYS
+from cystomap.sfm import SfmConfig
 
 SECTIONS = {
     "frames": FramesConfig,
     "preprocess": PreprocessConfig,
     "phantom": PhantomConfig,
     "evaluate": EvalConfig,
+    "sfm": SfmConfig,
     "mesh": MeshConfig,
     "atlas": AtlasConfig,
 }

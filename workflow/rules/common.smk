@@ -34,7 +34,11 @@ PHANTOM_SUBJECTS = [PHANTOM["subject"]] if PHANTOM["enabled"] else []
 CONDA_ENV = "../envs/cystomap.yaml"
 
 # Outputs the phantom scorer reads, per session; each stage's issue adds its own here.
-SCORED_OUTPUTS = {}
+SCORED_OUTPUTS = {
+    "sfm": "results/{subject}/{session}/sfm",
+    "mesh": "results/{subject}/{session}/mesh/surface.ply",
+    "atlas": "results/{subject}/{session}/atlas",
+}
 
 
 def _alternatives(values):
@@ -87,6 +91,6 @@ def evaluation_inputs(wildcards):
 def all_targets():
     targets = []
     for subject, session in SESSIONS.index:
-        targets.append(f"results/{subject}/{session}/preprocessed")
+        targets.append(f"results/{subject}/{session}/atlas")
     targets += [f"results/{subject}/evaluation.json" for subject in PHANTOM_SUBJECTS]
     return targets

@@ -1,0 +1,43 @@
+"""``python -m cystomap.bench --out results/bench``: run the benchmarks and write their tables."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import tempfile
+from pathlib import Path
+
+from cystomap.bench.common import write_table
+
+log = logging.getLogger("cystomap.bench")
+SUITES = ("phantom", "pipeline")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", type=Path, default=Path("results/bench"))
+    parser.add_argument("--only", choices=SUITES, action="append", help="run only these suites")
+    parser.add_argument("--repeats", type=int, default=3, help="runs per timed step (median reported)")
+    parser.add_argument("--work", type=Path, help="scratch directory (default: a temporary one)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    suites = args.only or list(SUITES)
+    with tempfile.TemporaryDirectory(prefix="cystomap-bench-") as tmp:
+        work = args.work or Path(tmp)
+        if "phantom" in suites:
+            from cystomap.bench.phantom import bench_phantom
+
+            df = write_table(bench_phantom(work, args.repeats), args.out, "phantom", "Phantom rendering")
+            log.info("phantom:\n%s", df.to_string(index=False))
+        if "pipeline" in suites:
+            from cystomap.bench.pipeline import bench_pipeline
+
+            times, scores = bench_pipeline(work, args.repeats)
+            df = write_table(times, args.out, "pipeline_times", "Stage times, one full-size phantom session")
+            log.info("pipeline times:\n%s", df.to_string(index=False))
+            df = write_table(scores, args.out, "pipeline_scores", "Scores against the phantom's ground truth")
+            log.info("pipeline scores:\n%s", df.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()

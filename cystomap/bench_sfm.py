@@ -1,0 +1,249 @@
+"""Benchmark of the SfM stage against pycolmap's defaults on phantom sessions.
+
+    python -m cystomap.bench_sfm --out results/bench
+
+For each phantom session (generated once into ``--work``; every video frame is decoded and
+preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap.sfm.run_sfm`
+``--repeats`` times and pycolmap's defaults (default SIFT, exhaustive matching, incremental
+mapping; one shared camera) ``--baseline-repeats`` times on the same enhanced frames, scores
+both with :mod:`cystomap.evaluate` and writes ``sfm.tsv``, ``sfm.md`` and ``sfm.json`` under
+``--out``. Times are medians over the runs; scores are those of the last run (the stage is
+deterministic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from cystomap.camera import Camera
+from cystomap.outputs import atomic_file, write_json
+
+log = logging.getLogger("cystomap.bench_sfm")
+
+# The phantom's camera of config.yaml (cameras.phantom_76).
+CAMERA = Camera(1280, 720, 939.864, 939.864, 639.5, 359.5, (-0.12, 0.02, 0.0, 0.0, 0.0),
+                name="phantom_76")
+SESSIONS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "dense": {"n_frames": 572},
+    "lowtex": {"texture_detail_mm": 0.4},
+}
+STEPS = ("features", "pairs", "matching", "mapping")
+
+
+def prepare(work: Path, tag: str, overrides: dict[str, Any]) -> tuple[Path, Path]:
+    """Phantom session ``tag`` -> (truth dir, preprocessed dir); reuses earlier output."""
+    import cv2
+
+    from cystomap.phantom import PhantomConfig, generate_session
+    from cystomap.preprocess import PreprocessConfig, preprocess_frames
+
+    root = work / tag
+    truth = root / "session"
+    pre = root / "preprocessed"
+    if not (truth / "truth.json").is_file():
+        log.info("%s: rendering phantom session %s", tag, overrides or "(defaults)")
+        generate_session(truth, 1, PhantomConfig(**overrides), CAMERA)
+    if not (pre / "camera.json").is_file():
+        frames = root / "frames"
+        shutil.rmtree(frames, ignore_errors=True)
+        frames.mkdir(parents=True)
+        cap = cv2.VideoCapture(str(truth / "video.mp4"))
+        n = 0
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            cv2.imwrite(str(frames / f"f{n:06d}.png"), img)
+            n += 1
+        cap.release()
+        log.info("%s: %d frames decoded; preprocessing", tag, n)
+        preprocess_frames(frames, pre, CAMERA, PreprocessConfig())
+        shutil.rmtree(frames, ignore_errors=True)
+    return truth, pre
+
+
+def run_ours(pre: Path, out: Path, extent_mm: float) -> dict[str, float]:
+    from cystomap.sfm import SfmConfig, run_sfm
+
+    run_sfm(pre, out, SfmConfig(), extent_mm=extent_mm)
+    q = json.loads((out / "quality.json").read_text())
+    t = dict(q["time_s"])
+    t["other"] = t["total"] - sum(t.get(s, 0.0) for s in STEPS)
+    t["cpu"] = q["cpu_s"]["total"]
+    return t
+
+
+def run_defaults(pre: Path, out: Path) -> dict[str, float]:
+    """pycolmap's defaults on the enhanced frames; models in ``out/0``, ``out/1`` …"""
+    import pycolmap
+
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    db = out / "database.db"
+    images = pre / "enhanced"
+    t: dict[str, float] = {}
+    c0 = time.process_time()
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.SINGLE)
+    t["features"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    pycolmap.match_exhaustive(db)
+    t["matching"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    recs = pycolmap.incremental_mapping(db, images, out)
+    t["mapping"] = time.perf_counter() - t2
+    t["total"] = time.perf_counter() - t0
+    t["cpu"] = time.process_time() - c0
+    t["pairs"] = 0.0
+    t["other"] = t["total"] - t["features"] - t["matching"] - t["mapping"]
+    db.unlink(missing_ok=True)
+    log.info("defaults: %d model(s), sizes %s", len(recs),
+             sorted((r.num_reg_images() for r in recs.values()), reverse=True))
+    return t
+
+
+def score(truth: Path, sfm: Path) -> dict[str, Any]:
+    from cystomap.evaluate import evaluate_session
+
+    r = evaluate_session(truth, sfm)
+    reg, traj = r.get("registration", {}), r.get("trajectory", {})
+    models = r.get("models", [])
+    return {
+        "frames": reg.get("n_frames"),
+        "registered": reg.get("n_registered"),
+        "models": reg.get("n_models"),
+        "largest_model": max((m["n_registered"] for m in models), default=0),
+        "rmse_mm": traj.get("rmse_mm"),
+        "max_error_mm": traj.get("max_error_mm"),
+        "rotation_error_deg": traj.get("rotation_error_deg_median"),
+        "reprojection_px": r.get("reprojection", {}).get("mean_error_px"),
+        "scale_error_pct": 100 * traj["scale_error"]
+        if traj.get("claims_metric") and "scale_error" in traj else None,
+        "points": max((m["n_points3d"] for m in models), default=0),
+    }
+
+
+COLUMNS = ("session", "method", "runs", "frames", "registered", "models", "largest_model",
+           "rmse_mm", "max_error_mm", "rotation_error_deg", "reprojection_px", "scale_error_pct",
+           "points", "t_features", "t_pairs", "t_matching", "t_mapping", "t_other", "t_total",
+           "cpu_total", "speedup", "speedup_cpu")
+
+
+def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: int,
+          baseline_sessions: Sequence[str]) -> list[dict[str, Any]]:
+    from cystomap.evaluate import load_truth
+
+    rows = []
+    for tag in sessions:
+        truth_dir, pre = prepare(work, tag, SESSIONS[tag])
+        extent = load_truth(truth_dir).extent_mm
+        methods = [("cystomap", repeats)]
+        if tag in baseline_sessions and baseline_repeats > 0:
+            methods.append(("pycolmap defaults", baseline_repeats))
+        totals: dict[str, float] = {}
+        for method, runs in methods:
+            times: list[dict[str, float]] = []
+            out = work / tag / ("sfm" if method == "cystomap" else "defaults")
+            for k in range(runs):
+                log.info("%s: %s run %d/%d", tag, method, k + 1, runs)
+                try:
+                    t = run_ours(pre, out, extent) if method == "cystomap" else run_defaults(pre, out)
+                except Exception as exc:  # report the failure in the table, go on
+                    log.error("%s: %s failed: %s", tag, method, exc)
+                    t = {}
+                    break
+                times.append(t)
+                log.info("%s: %s %.1f s", tag, method, t["total"])
+            row: dict[str, Any] = {"session": tag, "method": method, "runs": len(times)}
+            row.update(score(truth_dir, out) if times else {"registered": 0})
+            for step in (*STEPS, "other", "total"):
+                vals = [t.get(step, 0.0) for t in times]
+                row[f"t_{step}"] = statistics.median(vals) if vals else None
+            cpus = [t["cpu"] for t in times if "cpu" in t]
+            row["cpu_total"] = statistics.median(cpus) if cpus else None
+            totals[method] = (row["t_total"] or float("nan"), row["cpu_total"] or float("nan"))
+            rows.append(row)
+        base = totals.get("pycolmap defaults")
+        for row in rows:
+            if row["session"] == tag and base:
+                row["speedup"] = base[0] / row["t_total"] if row["t_total"] else None
+                row["speedup_cpu"] = base[1] / row["cpu_total"] if row["cpu_total"] else None
+    return rows
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+    return str(v)
+
+
+def write_tables(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_file(out / "sfm.tsv") as tmp:
+        lines = ["\t".join(COLUMNS)]
+        lines += ["\t".join("" if r.get(c) is None else str(r.get(c)) for c in COLUMNS) for r in rows]
+        tmp.write_text("\n".join(lines) + "\n")
+    md = [
+        "# SfM stage vs pycolmap defaults (phantom)",
+        "",
+        f"Machine: {meta['cpus']} cores, load average {meta['load']} at the start (other jobs "
+        "share the cores, so wall times vary; cpu_total = CPU seconds of all threads). Times in "
+        "seconds, medians over the runs; rmse/max error of camera centres after Sim(3) "
+        "alignment (mm); rotation error median (deg); scale error of the metric model (%); "
+        "speedup = defaults' total / this row's total (wall and CPU).",
+        "",
+        "| " + " | ".join(COLUMNS) + " |",
+        "| " + " | ".join("---" for _ in COLUMNS) + " |",
+    ]
+    md += ["| " + " | ".join(_fmt(r.get(c)) for c in COLUMNS) + " |" for r in rows]
+    with atomic_file(out / "sfm.md") as tmp:
+        tmp.write_text("\n".join(md) + "\n")
+    write_json(out / "sfm.json", {"meta": meta, "rows": rows})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m cystomap.bench_sfm", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=Path("results/bench"), help="where the tables go")
+    p.add_argument("--work", type=Path, default=Path("/tmp/cystomap-bench-sfm"),
+                   help="phantom sessions and models (reused between runs)")
+    p.add_argument("--sessions", default="default,dense,lowtex",
+                   help=f"comma-separated, of {', '.join(SESSIONS)}")
+    p.add_argument("--repeats", type=int, default=3, help="runs of the stage per session")
+    p.add_argument("--baseline-repeats", type=int, default=1, help="runs of pycolmap's defaults")
+    p.add_argument("--baseline-sessions", default="default",
+                   help="sessions on which the defaults run too (slow)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    sessions = [s for s in args.sessions.split(",") if s]
+    unknown = [s for s in sessions if s not in SESSIONS]
+    if unknown:
+        p.error(f"unknown session(s) {unknown}; known: {', '.join(SESSIONS)}")
+    import os
+
+    import pycolmap
+
+    load = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    rows = bench(args.work, sessions, args.repeats, args.baseline_repeats,
+                 [s for s in args.baseline_sessions.split(",") if s])
+    meta = {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "load": load,
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:]}
+    write_tables(args.out, rows, meta)
+    print((args.out / "sfm.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

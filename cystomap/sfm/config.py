@@ -1,0 +1,194 @@
+"""Settings of the structure-from-motion stage (the ``sfm:`` section of the config)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+INTRINSICS_MODES = ("auto", "fixed", "refine")
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """How camera poses and the sparse cloud are estimated from the preprocessed frames.
+
+    Pixel thresholds are in pixels of the full-size preprocessed frames, whatever
+    ``max_image_size`` the features are detected at.
+    """
+
+    # --- features (SIFT on the enhanced grey frames, inside mask.png) ---
+    # longest side (px) the frames are resized to for SIFT; 0 = full size. 640 (half of
+    # 1280x720) makes SIFT ~4x and matching >10x faster than full size, at about twice the
+    # trajectory error on the fine-textured phantom (0.23 vs 0.10 mm); 800: 0.15 mm
+    max_image_size: int = 640
+    # at most this many SIFT features per frame (the strongest are kept)
+    max_num_features: int = 2048
+    # first SIFT octave: -1 doubles the image first (more, finer features, ~3x slower), 0 = no
+    first_octave: int = 0
+    # number of SIFT octaves
+    num_octaves: int = 4
+    # SIFT peak (contrast) threshold; lower finds more features on low-texture mucosa
+    # (COLMAP's default is 0.0067)
+    peak_threshold: float = 0.004
+    # SIFT edge threshold (COLMAP's default)
+    edge_threshold: float = 10.0
+    # affine-covariant SIFT (slower; helps under strong foreshortening)
+    estimate_affine_shape: bool = False
+    # domain-size pooling of SIFT descriptors (slower; sometimes better on weak texture)
+    domain_size_pooling: bool = False
+    # features closer than this to the edge of the field-of-view mask are dropped (px)
+    mask_erode_px: int = 4
+
+    # --- image pairs ---
+    # each frame is matched with this many following frames in video order ...
+    sequential_overlap: int = 3
+    # ... and with frames further on (gaps doubling, up to this many frames) while the
+    # previous gap still had ``extend_min_inliers`` verified matches
+    sequential_max_gap: int = 32
+    extend_min_inliers: int = 40
+    # loop closure: each keyframe is also matched with this many retrieval neighbours (most
+    # similar keyframes outside its sequential window), found by VLAD on the session's own
+    # SIFT descriptors (no vocabulary tree); 0 = none
+    retrieval_neighbors: int = 6
+    # number of visual words (k-means clusters) of the VLAD descriptor
+    retrieval_words: int = 32
+    # SIFT descriptors sampled per frame to train the visual words
+    retrieval_train_per_image: int = 200
+    # retrieval pairs closer than this many keyframes are left to the sequential pairs, and
+    # the neighbours of one keyframe are this far apart from each other (0 = sequential_overlap)
+    retrieval_min_gap: int = 0
+    # dense video: only every s-th frame (keyframes) is mapped incrementally, s the largest
+    # power of two up to this for which this share of keyframes has strong pairs to the next
+    # two keyframes; the other frames are registered to that model afterwards
+    keyframe_max_stride: int = 16
+    keyframe_min_share: float = 0.9
+
+    # --- matching and two-view geometry ---
+    # Lowe's ratio test
+    max_ratio: float = 0.8
+    # largest descriptor distance of a match (COLMAP's default)
+    max_distance: float = 0.7
+    # re-match each verified pair guided by its epipolar geometry (more, better matches; slower)
+    guided_matching: bool = False
+    # a pair needs this many geometrically verified matches
+    min_num_inliers: int = 15
+    # RANSAC inlier threshold of two-view geometry (px, full size)
+    ransac_max_error_px: float = 4.0
+
+    # --- mapping ---
+    # camera intrinsics in bundle adjustment: fixed, refine, or auto = fixed when
+    # camera.json is calibrated, refined (focal length) when it is only a FOV guess
+    intrinsics: str = "auto"
+    # the initial pair needs this many verified matches and this triangulation angle (deg)
+    init_min_num_inliers: int = 50
+    init_min_tri_angle: float = 4.0
+    # RANSAC threshold (px) and minimum inliers to register a frame by absolute pose
+    abs_pose_max_error_px: float = 12.0
+    abs_pose_min_num_inliers: int = 25
+    # global bundle adjustment after the model grew by this ratio (COLMAP's default 1.1);
+    # larger = fewer global adjustments, faster
+    ba_global_ratio: float = 1.3
+    # iterations of each local / global bundle adjustment (COLMAP: up to 100 / 50)
+    ba_local_max_iterations: int = 25
+    ba_global_max_iterations: int = 50
+    # observations with a reprojection error above this are dropped (px); mapping and final
+    max_reproj_error_px: float = 4.0
+    # after mapping: drop observations above this error (px) and re-adjust; 0 = skip
+    final_filter_error_px: float = 2.0
+    # iterations of the final global bundle adjustment
+    final_ba_max_iterations: int = 100
+    # smaller models (separate pieces) are reported; only the largest is written
+    min_model_frames: int = 5
+
+    # --- failure ---
+    # the stage fails when fewer frames than this, or than this share of the frames, register
+    min_registered_frames: int = 5
+    min_registered_fraction: float = 0.3
+
+    # --- metric scale ---
+    # statistical outlier removal of points before measuring the extent or volume:
+    # neighbours considered, and the distance (in standard deviations) a point may lie out
+    outlier_neighbors: int = 16
+    outlier_std_ratio: float = 2.0
+    # each inlier point is averaged with this many nearest points before measuring (removes
+    # the outward bias of depth noise: measured -1..+0.6 % instead of +3..+6 % on phantoms)
+    scale_smooth_neighbors: int = 16
+    # points must be seen in at least this many frames to count for the scale
+    scale_min_track_length: int = 3
+    # volume_ml: "hull" = convex hull of the inlier points, "star" = star-shaped estimate
+    # (radial distance from the centroid, median per direction bin)
+    volume_method: str = "hull"
+
+    # --- outputs ---
+    # point colours come from at most this many colour frames (chosen to cover most points;
+    # decoding every full-size frame is slow); the rest take their nearest point's colour
+    colour_max_frames: int = 48
+
+    # --- run ---
+    # threads for feature extraction, matching and bundle adjustment
+    num_threads: int = 2
+    # seed of every random choice (RANSAC, k-means, mapping): equal inputs give equal outputs
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.max_image_size < 0 or 0 < self.max_image_size < 64:
+            problems.append("max_image_size must be 0 (full size) or >= 64")
+        if self.max_num_features < 16:
+            problems.append("max_num_features must be >= 16")
+        if self.first_octave not in (-1, 0, 1):
+            problems.append("first_octave must be -1, 0 or 1")
+        if not 1 <= self.num_octaves <= 8:
+            problems.append("num_octaves must be in 1..8")
+        if self.peak_threshold <= 0 or self.edge_threshold <= 0:
+            problems.append("peak_threshold and edge_threshold must be > 0")
+        if self.mask_erode_px < 0:
+            problems.append("mask_erode_px must be >= 0")
+        if self.sequential_overlap < 1:
+            problems.append("sequential_overlap must be >= 1")
+        if self.sequential_max_gap < self.sequential_overlap:
+            problems.append("sequential_max_gap must be >= sequential_overlap")
+        if self.keyframe_max_stride < 1 or not 0 < self.keyframe_min_share <= 1:
+            problems.append("keyframe_max_stride must be >= 1, keyframe_min_share in (0, 1]")
+        if self.extend_min_inliers < 1:
+            problems.append("extend_min_inliers must be >= 1")
+        if self.retrieval_neighbors < 0 or self.retrieval_min_gap < 0:
+            problems.append("retrieval_neighbors and retrieval_min_gap must be >= 0")
+        if self.retrieval_words < 2 or self.retrieval_train_per_image < 1:
+            problems.append("retrieval_words must be >= 2 and retrieval_train_per_image >= 1")
+        if not 0 < self.max_ratio <= 1 or not 0 < self.max_distance <= 1:
+            problems.append("max_ratio and max_distance must be in (0, 1]")
+        if self.min_num_inliers < 8 or self.init_min_num_inliers < 8:
+            problems.append("min_num_inliers and init_min_num_inliers must be >= 8")
+        if self.abs_pose_min_num_inliers < 6:
+            problems.append("abs_pose_min_num_inliers must be >= 6")
+        for name in ("ransac_max_error_px", "abs_pose_max_error_px", "max_reproj_error_px",
+                     "init_min_tri_angle"):
+            if getattr(self, name) <= 0:
+                problems.append(f"{name} must be > 0")
+        if self.final_filter_error_px < 0:
+            problems.append("final_filter_error_px must be >= 0")
+        if self.intrinsics not in INTRINSICS_MODES:
+            problems.append(f"intrinsics must be one of {', '.join(INTRINSICS_MODES)}")
+        if self.ba_global_ratio < 1.0:
+            problems.append("ba_global_ratio must be >= 1")
+        if min(self.ba_local_max_iterations, self.ba_global_max_iterations,
+               self.final_ba_max_iterations) < 1:
+            problems.append("bundle adjustment iterations must be >= 1")
+        if self.min_model_frames < 2 or self.min_registered_frames < 2:
+            problems.append("min_model_frames and min_registered_frames must be >= 2")
+        if not 0 <= self.min_registered_fraction <= 1:
+            problems.append("min_registered_fraction must be in [0, 1]")
+        if self.outlier_neighbors < 2 or self.outlier_std_ratio <= 0:
+            problems.append("outlier_neighbors must be >= 2 and outlier_std_ratio > 0")
+        if self.scale_smooth_neighbors < 0:
+            problems.append("scale_smooth_neighbors must be >= 0")
+        if self.scale_min_track_length < 2:
+            problems.append("scale_min_track_length must be >= 2")
+        if self.volume_method not in ("hull", "star"):
+            problems.append("volume_method must be hull or star")
+        if self.colour_max_frames < 1:
+            problems.append("colour_max_frames must be >= 1")
+        if self.num_threads < 1:
+            problems.append("num_threads must be >= 1")
+        if problems:
+            raise ValueError("; ".join(problems))

@@ -1,0 +1,205 @@
+"""SIFT features of the enhanced frames, inside the field-of-view mask, into a COLMAP database.
+
+The frames are resized with OpenCV (area filter) before COLMAP's SIFT runs on them, which is
+several times faster than letting COLMAP read and resize the full frames; keypoints and the
+camera are scaled back afterwards, so the database is in pixels of the full-size frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError
+from cystomap.sfm.config import SfmConfig
+
+log = logging.getLogger(__name__)
+
+FRAME_RE = re.compile(r"(\d+)\.png$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class Features:
+    """What the feature step put into the database."""
+
+    names: list[str]  # image names in video order (= database order)
+    num_keypoints: dict[str, int]
+    scale: float  # working size / full size
+
+
+def list_frames(enhanced_dir: Path) -> list[str]:
+    """PNG frame names in video order (by the frame index in their name)."""
+    if not enhanced_dir.is_dir():
+        raise InputError(f"{enhanced_dir}: no such directory (expected the preprocessed frames)")
+    found = []
+    for p in enhanced_dir.iterdir():
+        m = FRAME_RE.search(p.name)
+        if m and p.is_file():
+            found.append((int(m.group(1)), p.name))
+    if not found:
+        raise InputError(f"{enhanced_dir}: no frame PNGs (names like f000123.png)")
+    found.sort()
+    return [name for _, name in found]
+
+
+def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
+    """PINHOLE (fx, fy, cx, cy) or SIMPLE_PINHOLE (f, cx, cy) parameters in COLMAP's
+    convention (pixel corner at 0, so pixel centres at +0.5)."""
+    if model == "SIMPLE_PINHOLE":
+        return 0.5 * (camera.fx + camera.fy), camera.cx + 0.5, camera.cy + 0.5
+    return camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5
+
+
+def working_scale(camera: Camera, cfg: SfmConfig) -> float:
+    longest = max(camera.width, camera.height)
+    if cfg.max_image_size <= 0 or cfg.max_image_size >= longest:
+        return 1.0
+    return cfg.max_image_size / longest
+
+
+def extract(
+    enhanced_dir: Path,
+    mask_path: Path | None,
+    camera: Camera,
+    names: list[str],
+    database: Path,
+    work_dir: Path,
+    cfg: SfmConfig,
+    model: str = "PINHOLE",
+) -> Features:
+    """Detect SIFT features of ``names`` and write them, one shared camera (COLMAP ``model``:
+    PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``."""
+    import pycolmap
+
+    scale = working_scale(camera, cfg)
+    small = camera.scaled(scale) if scale != 1.0 else camera
+    size = (small.width, small.height)
+    image_dir = enhanced_dir
+    suffix = ""  # resized copies are uncompressed BMPs (fast); renamed back in the database
+    if scale != 1.0:
+        image_dir = work_dir / "images"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        suffix = ".bmp"
+
+        def resize(name: str) -> None:
+            img = cv2.imread(str(enhanced_dir / name), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise InputError(f"{enhanced_dir / name}: cannot read image")
+            _check_size(img, camera, enhanced_dir / name)
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            cv2.imwrite(str(image_dir / (name + suffix)), img)
+
+        with ThreadPoolExecutor(cfg.num_threads) as pool:
+            list(pool.map(resize, names))
+    else:
+        first = cv2.imread(str(enhanced_dir / names[0]), cv2.IMREAD_GRAYSCALE)
+        if first is None:
+            raise InputError(f"{enhanced_dir / names[0]}: cannot read image")
+        _check_size(first, camera, enhanced_dir / names[0])
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = model
+    reader.camera_params = ",".join(f"{v:.10g}" for v in colmap_camera(small, model))
+    mask = _working_mask(mask_path, camera, size, scale, cfg)
+    if mask is not None:
+        mask_file = work_dir / "mask.png"
+        cv2.imwrite(str(mask_file), mask)
+        reader.camera_mask_path = str(mask_file)
+
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.num_threads = cfg.num_threads
+    opts.max_image_size = max(size)
+    sift = opts.sift
+    sift.max_num_features = cfg.max_num_features
+    sift.first_octave = cfg.first_octave
+    sift.num_octaves = cfg.num_octaves
+    sift.peak_threshold = cfg.peak_threshold
+    sift.edge_threshold = cfg.edge_threshold
+    sift.estimate_affine_shape = cfg.estimate_affine_shape
+    sift.domain_size_pooling = cfg.domain_size_pooling
+    # images enter the database in video order first (single-threaded), so that image ids,
+    # and with them everything downstream, do not depend on thread timing
+    pycolmap.Database.open(str(database)).close()
+    files = [name + suffix for name in names]
+    pycolmap.import_images(database, image_dir, pycolmap.CameraMode.SINGLE, files, reader)
+    pycolmap.extract_features(
+        database, image_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader, extraction_options=opts, device=pycolmap.Device.cpu,
+    )
+
+    counts: dict[str, int] = {}
+    db = pycolmap.Database.open(str(database))
+    try:
+        cams = db.read_all_cameras()
+        if len(cams) != 1:
+            raise RuntimeError(f"expected one shared camera in the database, found {len(cams)}")
+        cam = cams[0]
+        cam.width, cam.height = camera.width, camera.height
+        cam.params = list(colmap_camera(camera, model))
+        db.update_camera(cam)
+        sx, sy = camera.width / small.width, camera.height / small.height
+        for image in db.read_all_images():
+            if suffix and image.name.endswith(suffix):
+                image.name = image.name[: -len(suffix)]
+                db.update_image(image)
+            kp = np.array(db.read_keypoints(image.image_id), dtype=np.float32)
+            if scale != 1.0 and len(kp):
+                kp[:, 0] *= sx
+                kp[:, 1] *= sy
+                if kp.shape[1] >= 6:
+                    kp[:, 2:4] *= sx
+                    kp[:, 4:6] *= sy
+                elif kp.shape[1] >= 3:
+                    kp[:, 2] *= 0.5 * (sx + sy)
+                db.update_keypoints(image.image_id, kp)
+            counts[image.name] = len(kp)
+    finally:
+        db.close()
+    missing = [n for n in names if n not in counts]
+    if missing:
+        log.warning("%d frame(s) could not be read by COLMAP, e.g. %s", len(missing), missing[0])
+    values = np.array(list(counts.values()) or [0])
+    log.info("features: %d frames at %dx%d, %d-%d (median %d) keypoints per frame",
+             len(counts), size[0], size[1], values.min(), values.max(), int(np.median(values)))
+    return Features(names=names, num_keypoints=counts, scale=scale)
+
+
+def _check_size(img: np.ndarray, camera: Camera, path: Path) -> None:
+    h, w = img.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(
+            f"{path}: frame is {w}x{h} but camera.json says {camera.width}x{camera.height}"
+        )
+
+
+def _working_mask(
+    mask_path: Path | None, camera: Camera, size: tuple[int, int], scale: float, cfg: SfmConfig
+) -> np.ndarray | None:
+    """The field-of-view mask at working size (255 = use), eroded by ``cfg.mask_erode_px``."""
+    if mask_path is None or not mask_path.is_file():
+        return None
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None:
+        raise InputError(f"{mask_path}: cannot read mask")
+    if mask.shape != (camera.height, camera.width):
+        raise InputError(
+            f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but camera.json says "
+            f"{camera.width}x{camera.height}"
+        )
+    mask = (mask > 127).astype(np.uint8) * 255
+    if scale != 1.0:
+        mask = cv2.resize(mask, size, interpolation=cv2.INTER_AREA)
+        mask = (mask > 250).astype(np.uint8) * 255
+    erode = round(cfg.mask_erode_px * scale)
+    if erode > 0:
+        mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1,) * 2))
+    if not mask.any():
+        raise InputError(f"{mask_path}: the mask leaves no valid pixels")
+    return mask

@@ -1,0 +1,191 @@
+"""The structure-from-motion stage: preprocessed frames -> camera poses and a sparse cloud.
+
+Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
+video-order neighbours + VLAD retrieval neighbours (loop closure); COLMAP matching and
+two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
+refined intrinsics; a final filter-and-adjust pass; metric scale from the known extent or
+volume of the bladder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from cystomap.camera import Camera
+from cystomap.errors import InputError, StageError
+from cystomap.outputs import atomic_dir, write_json
+from cystomap.sfm import features as feat
+from cystomap.sfm import mapping, matching, pairs, quality, scale
+from cystomap.sfm.config import SfmConfig
+
+log = logging.getLogger(__name__)
+
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
+
+
+@contextlib.contextmanager
+def _quiet_colmap() -> Iterator[None]:
+    """COLMAP's own INFO lines only when this module logs at DEBUG."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    if not log.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = 1
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+class _Timer:
+    """Wall-clock and CPU (all threads) seconds per step."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+        self._c0 = time.process_time()
+
+    @contextlib.contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        t, c = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.times[name] = self.times.get(name, 0.0) + time.perf_counter() - t
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - c
+
+    def totals(self) -> tuple[dict[str, float], dict[str, float]]:
+        wall, cpu = dict(self.times), dict(self.cpu)
+        wall["total"] = time.perf_counter() - self._t0
+        cpu["total"] = time.process_time() - self._c0
+        return wall, cpu
+
+
+def run_sfm(
+    preprocessed_dir: str | Path,
+    out_dir: str | Path,
+    cfg: SfmConfig | None = None,
+    extent_mm: float | None = None,
+    volume_ml: float | None = None,
+) -> Path:
+    """Estimate camera poses and a sparse cloud of one session; write them to ``out_dir``.
+
+    ``preprocessed_dir`` holds ``enhanced/`` (features), ``color/`` (point colours),
+    ``mask.png`` and ``camera.json``. ``out_dir`` receives a COLMAP binary model
+    (``cameras.bin``, ``images.bin``, ``points3D.bin``; in mm when ``extent_mm`` or
+    ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing.
+
+    Raises :class:`StageError` when too few frames register (the message says how many and
+    why) and :class:`InputError` when the inputs are missing or inconsistent.
+    """
+    cfg = cfg or SfmConfig()
+    pre = Path(preprocessed_dir)
+    out_dir = Path(out_dir)
+    for value, name in ((extent_mm, "extent_mm"), (volume_ml, "volume_ml")):
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise InputError(f"{name} must be a positive number, got {value!r}")
+    camera = Camera.load(pre / "camera.json")
+    if camera.has_distortion:
+        log.warning("%s has distortion coefficients; the frames are assumed undistorted and "
+                    "the distortion is ignored", pre / "camera.json")
+    enhanced = pre / "enhanced"
+    names = feat.list_frames(enhanced)
+    color_dir = pre / "color" if (pre / "color").is_dir() else enhanced
+    mask = pre / "mask.png" if (pre / "mask.png").is_file() else None
+    if mask is None:
+        log.warning("%s: no mask.png; features are taken from the whole frame", pre)
+    n = len(names)
+    log.info("sfm: %d frames from %s (%s intrinsics)", n, pre,
+             "calibrated" if camera.calibrated else "uncalibrated")
+    timer = _Timer()
+    with tempfile.TemporaryDirectory(prefix="cystomap-sfm-") as tmp, _quiet_colmap():
+        work = Path(tmp)
+        database = work / "database.db"
+        refine = mapping.refine_intrinsics(cfg, camera.calibrated)
+        model = "SIMPLE_PINHOLE" if refine else "PINHOLE"  # one focal length when refined
+        with timer.step("features"):
+            features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model)
+        with timer.step("matching"):
+            verified, n_tried = matching.match_sequence(database, names, work, cfg)
+        stride = mapping.keyframe_stride(verified, n, cfg)
+        key = mapping.keyframes(n, stride)
+        if stride > 1:
+            log.info("keyframes: every %d-th frame, %d of %d", stride, len(key), n)
+        with timer.step("pairs"):
+            loops = pairs.loop_pairs(database, names, key, cfg) - set(verified)
+        with timer.step("matching"):
+            matching.match(database, names, loops, work, cfg)
+            pair_stats = {"sequential": n_tried, "retrieval": len(loops),
+                          "total": n_tried + len(loops), "keyframe_stride": stride}
+            n_tried += len(loops)
+            matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
+        need = max(cfg.min_registered_frames, math.ceil(cfg.min_registered_fraction * n))
+        if matches.num_verified == 0:
+            raise StageError(
+                f"sfm: 0 of {n} frames registered: none of the {n_tried} image pairs "
+                f"had {cfg.min_num_inliers} geometrically verified matches (median "
+                f"{_median(features.num_keypoints.values()):.0f} features per frame)"
+            )
+        with timer.step("mapping"):
+            result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
+                                         names, key)
+        if result is None:
+            matched = sum(1 for v in matches.verified_per_image.values() if v)
+            raise StageError(
+                f"sfm: 0 of {n} frames registered: no model of at least {cfg.min_model_frames} "
+                f"frames could be started ({matches.num_verified} verified pairs, {matched} frames "
+                f"with a verified match)"
+            )
+        rec = result.reconstruction
+        n_reg = rec.num_reg_images()
+        if n_reg < need:
+            raise StageError(
+                f"sfm: only {n_reg} of {n} frames registered in the largest model (need {need}); "
+                f"{len(result.models)} model(s) of {[len(m) for m in result.models]} frames, "
+                f"{matches.num_verified} of {n_tried} pairs verified"
+            )
+        mapping.as_pinhole(rec)
+        with timer.step("scale"):
+            xyz, _, length, _ = quality.points_arrays(rec)
+            est = scale.estimate_scale(
+                xyz[length >= cfg.scale_min_track_length], cfg, extent_mm, volume_ml
+            )
+            scale.apply_scale(rec, est.factor)
+        with timer.step("colours"):
+            n_read = quality.colour_points(rec, color_dir, cfg.num_threads, cfg.colour_max_frames)
+            log.info("colours: from %d of %d frames", n_read, n_reg)
+        with timer.step("write"), atomic_dir(out_dir) as out:
+            rec.write_binary(str(out))
+            xyz, rgb, _, _ = quality.points_arrays(rec)
+            quality.write_ply(out / "points.ply", xyz, rgb)
+            timings, cpu_times = timer.totals()
+            q = quality.summarise(
+                rec, names, features, matches, result.models, pair_stats, est.to_dict(), timings,
+                {"final_adjustment": result.final_ba,
+                 "intrinsics": "refined" if refine else "fixed",
+                 "working_scale": features.scale,
+                 "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()}},
+                cfg.min_num_inliers,
+            )
+            write_json(out / "quality.json", q)
+    log.info("sfm: %d of %d frames registered, %d points, reprojection error %.3f px, %.1f s",
+             q["registered"], n, q["points"], q["mean_reprojection_error_px"] or float("nan"),
+             timings["total"])
+    if q["models_found"] > 1:
+        log.warning("sfm: %d models found; wrote the largest (%d frames), others have %s frames",
+                    q["models_found"], q["model_sizes"][0], q["model_sizes"][1:])
+    return out_dir
+
+
+def _median(values: object) -> float:
+    import numpy as np
+
+    arr = np.fromiter(values, dtype=float)  # type: ignore[arg-type]
+    return float(np.median(arr)) if len(arr) else 0.0

@@ -1,0 +1,24 @@
+# Stage 5: frames back-projected onto the mesh: textured 3-D model, 2-D atlas, coverage.
+
+
+rule atlas:
+    input:
+        sfm="results/{subject}/{session}/sfm",
+        preprocessed="results/{subject}/{session}/preprocessed",
+        mesh="results/{subject}/{session}/mesh/surface.ply",
+    output:
+        atlas=directory("results/{subject}/{session}/atlas"),
+    params:
+        atlas=config["atlas"],
+    log:
+        "logs/{subject}/{session}/atlas.log",
+    benchmark:
+        "benchmarks/{subject}/{session}/atlas.tsv"
+    threads: 2
+    resources:
+        mem_mb=6000,
+        runtime=20,
+    conda:
+        CONDA_ENV
+    script:
+        "../../scripts/atlas.py"
