@@ -19,6 +19,7 @@ include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/sfm.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/atlas.smk"
+include: "workflow/rules/compare.smk"
 include: "workflow/rules/evaluate.smk"
 
 

@@ -8,6 +8,7 @@ import yaml
 
 from cystomap import configdoc
 from cystomap.atlas import AtlasConfig
+from cystomap.compare import CompareConfig
 from cystomap.evaluate import EvalConfig
 from cystomap.frames import FramesConfig
 from cystomap.mesh import MeshConfig
@@ -24,6 +25,7 @@ SECTIONS = {
     "sfm": SfmConfig,
     "mesh": MeshConfig,
     "atlas": AtlasConfig,
+    "compare": CompareConfig,
 }
 SCHEMA_WORDS = {
     "type", "default", "description", "items", "minItems", "maxItems", "minimum", "maximum",

@@ -73,7 +73,7 @@ def test_changing_a_stage_parameter_reruns_only_that_stage_and_after(finished):
     assert finished.planned_jobs(*TARGETS) == {"frames": 2, "preprocess": 2}
     finished.write_config(study_config())
     assert finished.planned_jobs(*TARGETS) == {}
-    assert finished.planned_jobs() == {"sfm": 2, "mesh": 2, "atlas": 2, "all": 1}
+    assert finished.planned_jobs() == {"sfm": 2, "mesh": 2, "atlas": 2, "compare": 1, "all": 1}
 
 
 def test_snakemake_lint_is_clean(finished):

@@ -12,7 +12,7 @@ pytestmark = pytest.mark.workflow
 
 HALF_CAMERA = {"width": 640, "height": 360, "fx": 469.932, "fy": 469.932, "cx": 319.5, "cy": 179.5,
                "k1": -0.12, "k2": 0.02}
-ALL_JOBS = {"phantom_session": 2, "frames": 2, "preprocess": 2, "sfm": 2, "mesh": 2, "atlas": 2,
+ALL_JOBS = {"phantom_session": 2, "frames": 2, "preprocess": 2, "sfm": 2, "mesh": 2, "atlas": 2, "compare": 1,
             "evaluate": 1, "all": 1}
 
 
@@ -46,6 +46,10 @@ def test_phantom_study_runs_end_to_end(tmp_path, workflow_factory):
         assert scores["registration"]["registered_share"] >= 0.7
         assert scores["reprojection"]["mean_error_px"] < 1.0
         assert scores["atlas"]["coverage_percent"] > 80
+    assert set(evaluation["comparisons"]) == {"s1_vs_s2"}
+    compare = tmp_path / "results/phantom/compare/s1_vs_s2"
+    assert json.loads((compare / "registration.json").read_text())["registered"]
+    assert list(pd.read_csv(compare / "changes.csv").columns[:4]) == ["id", "x", "y", "z"]
     assert wf.planned_jobs() == {}
     wf.write_config(phantom_config(seed=8))
     assert wf.planned_jobs() == ALL_JOBS

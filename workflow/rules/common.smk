@@ -48,6 +48,8 @@ def _alternatives(values):
 wildcard_constraints:
     subject=_alternatives(SESSIONS["subject"]),
     session=_alternatives(SESSIONS["session"]),
+    a=_alternatives(SESSIONS["session"]),
+    b=_alternatives(SESSIONS["session"]),
 
 
 def session_row(wildcards):
@@ -85,6 +87,26 @@ def evaluation_inputs(wildcards):
     inputs = {"truth": [f"results/{wildcards.subject}/phantom/{s}/truth" for s in sessions]}
     for key, pattern in SCORED_OUTPUTS.items():
         inputs[key] = [pattern.format(subject=wildcards.subject, session=s) for s in sessions]
+    pairs = comparison_pairs(wildcards.subject)
+    inputs["changes"] = [f"results/{wildcards.subject}/compare/{a}_vs_{b}" for a, b in pairs]
+    inputs["changes_sfm"] = [f"results/{wildcards.subject}/{b}/sfm" for a, b in pairs]
+    inputs["changes_truth"] = [f"results/{wildcards.subject}/phantom/{b}/truth" for a, b in pairs]
+    return inputs
+
+
+def comparison_pairs(subject):
+    """Consecutive sessions of a subject, ordered by date: [(a, b), ...]."""
+    rows = SESSIONS[SESSIONS["subject"] == subject].reset_index(drop=True).sort_values(["date", "session"])
+    names = list(rows["session"])
+    return list(zip(names[:-1], names[1:]))
+
+
+def comparison_inputs(wildcards):
+    inputs = {}
+    for key, session in (("a", wildcards.a), ("b", wildcards.b)):
+        root = f"results/{wildcards.subject}/{session}"
+        inputs |= {f"{key}_sfm": f"{root}/sfm", f"{key}_preprocessed": f"{root}/preprocessed",
+                   f"{key}_mesh": f"{root}/mesh/surface.ply", f"{key}_atlas": f"{root}/atlas"}
     return inputs
 
 
@@ -92,5 +114,7 @@ def all_targets():
     targets = []
     for subject, session in SESSIONS.index:
         targets.append(f"results/{subject}/{session}/atlas")
+    for subject in SESSIONS["subject"].unique():
+        targets += [f"results/{subject}/compare/{a}_vs_{b}" for a, b in comparison_pairs(subject)]
     targets += [f"results/{subject}/evaluation.json" for subject in PHANTOM_SUBJECTS]
     return targets

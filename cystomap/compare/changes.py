@@ -1,0 +1,357 @@
+"""Changed regions: threshold from the pair's own noise, clean, measure on the wall.
+
+Threshold (``threshold_k``): the per-pixel significance (whitened, smoothed colour
+difference; see :mod:`cystomap.compare.difference`) has a heavy tail even without any change
+(registration jitter of vessels, atlas seams), so no Gaussian quantile is trusted. Its
+robust level on the compared wall is measured instead: ``T = median + k · 1.4826 · MAD``.
+k = 15 was set from pairs without change (phantom session 1 against a re-render of the same
+bladder along another path and with another illumination gain): the largest spurious region
+there peaked 12.6 MADs above the median with full SfM coverage, up to 15 with partial SfM
+models. Regions start at pixels above ``T`` and grow over the connected pixels above
+``grow_fraction · T`` (hysteresis), are cleaned by a morphological closing and opening
+(``morphology_mm``), pieces closer than ``merge_mm`` are joined, and a region must be at
+least the area of a disc of ``min_diameter_mm``.
+
+Checks (each counted in ``compare.json``): the region lies on reconstructed wall (median
+distance to the nearest SfM point of each session ≤ ``max_point_distance_mm``), is mostly
+surrounded by compared wall (``min_enclosed``), session A shows wall there, not an opening
+(``min_luminance_a``), and its texture is photo-consistent in session B's frames
+(``max_inconsistency``, :mod:`cystomap.compare.consistency`), it is a patch rather than a
+line (length / width on the wall at most ``max_elongation``: a vessel or edge left
+misaligned gives a thin, long difference; phantom lesions measured 1.0-1.7, cut ones up to
+2.8, vessel residues 4-6), and it is not at the
+bladder neck: the scope enters through it, so registered cameras at or beyond the wall point
+to it, and the mesh closes it with a cap whose texture (the urethra seen through it) differs
+between sessions; regions centred within ``opening_deg`` of such a camera's direction are
+dropped (lesions at the neck are therefore not reported when the entry was registered).
+
+Measurement: each region's outline is where its significance exceeds half of its own peak
+(95th percentile), the full-width-at-half-maximum outline, holes filled: a blurred disc's
+half-maximum contour lies on its edge whatever its contrast, so the size does not depend on
+the threshold. Area = sum of the wall areas of its pixels (not a pixel count),
+diameter = sqrt(4 A / π), centroid = area-weighted mean wall point, put back on the wall
+along its direction from the barycentre.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cystomap.atlas.projection import Projection, SurfaceRays
+from cystomap.compare.difference import Difference, Grid
+
+log = logging.getLogger(__name__)
+
+CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2",
+                  "diameter_mm", "mean_difference", "score", "peak_significance",
+                  "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
+                  "enclosed", "luminance_a", "luminance_b",
+                  "point_distance_mm", "elongation")
+
+
+@dataclass
+class Region:
+    id: int
+    pixels: np.ndarray  # flat grid indices of the measured outline
+    x: float
+    y: float
+    z: float
+    azimuth_deg: float
+    elevation_deg: float
+    area_mm2: float
+    diameter_mm: float
+    mean_difference: float  # mean colour difference |B − A| (0-255 RGB units)
+    score: float
+    peak_significance: float
+    mean_significance: float
+    atlas_col: float  # centroid in session B's (full-size) atlas
+    atlas_row: float
+    inconsistency: float | None = None  # photo-consistency in B's frames (None: not tested)
+    enclosed: float = 1.0  # share of a ring around the region that both sessions saw
+    luminance_a: float = 1.0  # median luminance in the region / on the compared wall, A
+    luminance_b: float = 1.0  # the same in B
+    point_distance_mm: float = 0.0  # median distance to the sessions' nearest SfM points
+    elongation: float = 1.0  # length / width on the wall (principal axes)
+
+    def row(self) -> dict[str, Any]:
+        return {"id": self.id, "x": self.x, "y": self.y, "z": self.z,
+                "azimuth_deg": self.azimuth_deg, "elevation_deg": self.elevation_deg,
+                "area_mm2": self.area_mm2, "diameter_mm": self.diameter_mm,
+                "mean_difference": self.mean_difference, "score": self.score,
+                "peak_significance": self.peak_significance,
+                "mean_significance": self.mean_significance,
+                "atlas_col": self.atlas_col, "atlas_row": self.atlas_row,
+                "pixels": len(self.pixels),
+                "inconsistency": "" if self.inconsistency is None else self.inconsistency,
+                "enclosed": self.enclosed,
+                "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
+                "point_distance_mm": self.point_distance_mm, "elongation": self.elongation}
+
+
+def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """8-connected labels (1 …) of ``mask``, joined across the azimuth seam; 0 = background."""
+    import cv2
+
+    n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return lab.astype(np.int32), 0
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    left, right = lab[:, 0], lab[:, -1]
+    h = len(left)
+    for r in range(h):
+        if left[r] == 0:
+            continue
+        for dr in (-1, 0, 1):
+            rr = r + dr
+            if 0 <= rr < h and right[rr]:
+                a, b = find(int(left[r])), find(int(right[rr]))
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    roots = np.array([find(i) for i in range(n)])
+    uniq, new = np.unique(roots, return_inverse=True)
+    return new[lab].astype(np.int32), len(uniq) - 1
+
+
+def _disc(radius_px: float) -> np.ndarray:
+    import cv2
+
+    r = max(1, round(float(radius_px)))
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def _morph(mask: np.ndarray, op: int, kernel: np.ndarray) -> np.ndarray:
+    import cv2
+
+    pad = kernel.shape[1]
+    m = cv2.copyMakeBorder(mask.astype(np.uint8), 0, 0, pad, pad, cv2.BORDER_WRAP)
+    return cv2.morphologyEx(m, op, kernel)[:, pad:-pad].astype(bool)
+
+
+def _ring(mask: np.ndarray, width: int) -> np.ndarray:
+    import cv2
+
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))
+    return cv2.dilate(mask.astype(np.uint8), k) > 0
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import binary_fill_holes
+
+    return binary_fill_holes(mask)
+
+
+def elongation(points: np.ndarray, weights: np.ndarray) -> float:
+    """Length / width of a patch of wall points: sqrt of the ratio of the two largest
+    eigenvalues of their weighted covariance."""
+    if len(points) < 3:
+        return 1.0
+    w = weights / max(float(weights.sum()), 1e-12)
+    c = points - (points * w[:, None]).sum(0)
+    ev = np.sort(np.linalg.eigvalsh((c * w[:, None]).T @ c))[::-1]
+    return float(np.sqrt(ev[0] / max(ev[1], 1e-12)))
+
+
+def threshold(diff: Difference, k: float) -> tuple[float, dict[str, float]]:
+    """``median + k · 1.4826 · MAD`` of the significance on the jointly seen wall."""
+    return threshold_of(diff.significance[diff.joint], k)
+
+
+def threshold_of(s: np.ndarray, k: float) -> tuple[float, dict[str, float]]:
+    """``median + k · 1.4826 · MAD`` of the significance values ``s``."""
+    med = float(np.median(s))
+    mad = float(1.4826 * np.median(np.abs(s - med)))
+    t = med + k * mad
+    return t, {"median": med, "mad_sigma": mad, "k": k, "threshold": t}
+
+
+def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
+           verify: Callable[[np.ndarray, np.ndarray], dict[str, Any]] | None = None,
+           openings: np.ndarray | None = None,
+           ) -> tuple[list[Region], dict[str, Any]]:
+    """Changed regions of ``diff`` measured on session B's wall (sorted by score).
+
+    ``openings``: unit directions (from B's barycentre) of the bladder neck; regions whose
+    centroid lies within ``cfg.opening_deg`` of one are dropped.
+
+    ``verify(region_pixels, ring_pixels)`` (flat grid indices) may return
+    ``{"inconsistency": value}``; regions above ``cfg.max_inconsistency`` are dropped (see
+    :mod:`cystomap.compare.consistency`).
+    """
+    import cv2
+
+    grid: Grid = diff.grid
+    sig = diff.significance
+    t_high, info = threshold(diff, cfg.threshold_k)
+    t_low = cfg.grow_fraction * t_high
+    low = diff.joint & (sig > t_low)
+    lab, n = label_wrapped(low)
+    seeds = np.unique(lab[diff.joint & (sig > t_high)])
+    seeds = seeds[seeds > 0]
+    cand = np.isin(lab, seeds)
+    r_px = cfg.morphology_mm / grid.mm_per_px_y
+    if r_px >= 0.5:
+        k = _disc(r_px)
+        cand = _morph(cand, cv2.MORPH_CLOSE, k)
+        cand = _morph(cand, cv2.MORPH_OPEN, k) & diff.joint
+    lab, n = label_wrapped(cand)
+    if cfg.merge_mm > 0 and n > 1:
+        # fragments of one change cut by a thin unseen gap (atlas seam, occlusion sliver)
+        # closer than merge_mm are one region
+        grown = _morph(cand, cv2.MORPH_DILATE, _disc(cfg.merge_mm / 2 / grid.mm_per_px_y))
+        glab, _ = label_wrapped(grown)
+        lab = np.where(cand, glab, 0)
+        n = int(lab.max())
+    min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
+    regions: list[Region] = []
+    dropped_small = 0
+    dropped_edge = 0
+    dropped_inconsistent = 0
+    dropped_dark = 0
+    dropped_far = 0
+    dropped_neck = 0
+    dropped_long = 0
+    ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
+    flat_sig = sig.ravel()
+    flat_area = grid.area.ravel()
+    flat_pts = grid.points.reshape(-1, 3)
+    flat_delta = diff.delta.reshape(-1, 3)
+    h, w = grid.shape
+    pdist = diff.point_distance.ravel() if diff.point_distance is not None else None
+    lum_a = diff.a_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
+    lum_b = diff.b_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
+    jflat = diff.joint.ravel()
+    lum_ref_a = max(float(np.median(lum_a[jflat])), 1e-6)
+    lum_ref_b = max(float(np.median(lum_b[jflat])), 1e-6)
+    order = np.argsort(lab.ravel(), kind="stable")
+    sorted_lab = lab.ravel()[order]
+    bounds = np.searchsorted(sorted_lab, np.arange(1, n + 2))
+    for r in range(1, n + 1):
+        px = order[bounds[r - 1]:bounds[r]]
+        if len(px) == 0:
+            continue
+        if flat_area[px].sum() < min_area:
+            dropped_small += 1
+            continue
+        peak = float(np.percentile(flat_sig[px], 95))
+        top = float(flat_sig[px].max())
+        # FWHM outline: within the region's bounding box (grown by its own size), pixels above
+        # half the peak that touch the region, holes filled
+        rows, cols = px // w, px % w
+        # regions across the seam: unwrap columns around the region's first column
+        c0 = cols[0]
+        ucols = (cols - c0 + w // 2) % w - w // 2 + c0
+        pad = int(np.ceil(max(np.ptp(rows), np.ptp(ucols)) / 2)) + 3 + ring_px
+        r_lo, r_hi = max(0, rows.min() - pad), min(h, rows.max() + pad + 1)
+        c_idx = np.arange(ucols.min() - pad, ucols.max() + pad + 1) % w
+        sub_sig = sig[r_lo:r_hi][:, c_idx]
+        sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
+        half = sub_joint & (sub_sig >= 0.5 * peak)
+        core = np.zeros_like(half)
+        core[rows - r_lo, ucols - (ucols.min() - pad)] = True
+        _, sub_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
+        keep = np.unique(sub_lab[core & half])
+        keep = keep[keep > 0]
+        outline = _fill_holes(np.isin(sub_lab, keep)) & sub_joint if len(keep) else core
+        ring = _ring(outline, ring_px) & ~outline
+        enclosed = float(sub_joint[ring].mean()) if ring.any() else 0.0
+        if enclosed < cfg.min_enclosed:
+            dropped_edge += 1
+            continue
+        rr, cc = np.nonzero(outline)
+        pix = (rr + r_lo) * w + c_idx[cc]
+        p_dist = float(np.median(pdist[pix])) if pdist is not None else 0.0
+        if cfg.max_point_distance_mm > 0 and p_dist > cfg.max_point_distance_mm:
+            dropped_far += 1
+            log.info("changes: region at %s dropped: %.1f mm from the nearest SfM point "
+                     "(the mesh is interpolated there)", np.round(np.nanmean(flat_pts[pix],
+                     axis=0), 1).tolist(), p_dist)
+            continue
+        lum_rel_a = float(np.median(lum_a[pix])) / lum_ref_a
+        if lum_rel_a < cfg.min_luminance_a:
+            dropped_dark += 1
+            log.info("changes: region at %s dropped: session A shows an opening there (%.0f%% "
+                     "of the wall's luminance), not wall", np.round(np.nanmean(flat_pts[pix],
+                     axis=0), 1).tolist(), 100 * lum_rel_a)
+            continue
+        consistency: dict[str, Any] = {}
+        if verify is not None:
+            r2, c2 = np.nonzero(ring & sub_joint)
+            consistency = verify(pix, (r2 + r_lo) * w + c_idx[c2])
+            value = consistency.get("inconsistency")
+            if value is not None and value > cfg.max_inconsistency:
+                dropped_inconsistent += 1
+                log.info("changes: region at %s dropped: its colours disagree across session "
+                         "B's frames (inconsistency %.2f > %.2f; not on the wall)",
+                         np.round(np.nanmean(flat_pts[pix], axis=0), 1).tolist(), value,
+                         cfg.max_inconsistency)
+                continue
+        a = flat_area[pix]
+        area = float(a.sum())
+        if area < min_area:
+            dropped_small += 1
+            continue
+        p = flat_pts[pix]
+        ok = np.isfinite(p).all(axis=1)
+        centroid = (p[ok] * a[ok, None]).sum(0) / max(a[ok].sum(), 1e-12)
+        elong = elongation(p[ok], a[ok])
+        if cfg.max_elongation > 0 and elong > cfg.max_elongation:
+            dropped_long += 1
+            log.info("changes: region at %s dropped: elongated (%.1f : 1), a vessel or edge "
+                     "left misaligned, not a patch", np.round(centroid, 1).tolist(), elong)
+            continue
+        d = centroid - proj_full.barycentre
+        d /= max(np.linalg.norm(d), 1e-12)
+        t_hit, _ = rays.cast(proj_full.barycentre, d[None])
+        if np.isfinite(t_hit[0]):
+            centroid = proj_full.barycentre + t_hit[0] * d
+        if openings is not None and len(openings) and cfg.opening_deg > 0 and float(
+                (openings @ d).max()) > math.cos(math.radians(cfg.opening_deg)):
+            dropped_neck += 1
+            log.info("changes: region at %s dropped: within %g deg of the bladder neck, where "
+                     "the scope entered", np.round(centroid, 1).tolist(), cfg.opening_deg)
+            continue
+        q = proj_full.axes @ d
+        az = math.degrees(math.atan2(q[1], q[0]))
+        el = math.degrees(math.atan2(q[2], math.hypot(q[0], q[1])))
+        col, row = proj_full.point_to_pixel(centroid[None])
+        mean_sig = float(np.average(flat_sig[pix], weights=a))
+        regions.append(Region(
+            id=0, pixels=pix, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
+            azimuth_deg=az, elevation_deg=el, area_mm2=area,
+            diameter_mm=math.sqrt(4 * area / math.pi),
+            mean_difference=float(np.average(np.linalg.norm(flat_delta[pix], axis=1),
+                                             weights=a)),
+            score=top / max(t_high, 1e-12), peak_significance=peak,
+            mean_significance=mean_sig, atlas_col=float(col[0]), atlas_row=float(row[0]),
+            inconsistency=consistency.get("inconsistency"), enclosed=enclosed,
+            luminance_a=lum_rel_a,
+            luminance_b=float(np.median(lum_b[pix])) / lum_ref_b,
+            point_distance_mm=p_dist, elongation=elong))
+    regions.sort(key=lambda g: -g.score)
+    for i, g in enumerate(regions, start=1):
+        g.id = i
+    info.update(low_threshold=t_low, candidates=n, dropped_small=dropped_small,
+                dropped_at_edge=dropped_edge, dropped_inconsistent=dropped_inconsistent,
+                dropped_dark_in_a=dropped_dark, dropped_off_reconstruction=dropped_far,
+                dropped_near_neck=dropped_neck, dropped_elongated=dropped_long,
+                min_area_mm2=min_area, regions=len(regions),
+                score_definition="largest significance in the region / threshold (> 1)")
+    log.info("changes: threshold %.2f (median %.2f + %.1f x MAD %.2f), %d region(s); dropped: "
+             "%d too small, %d at the edge of the compared wall, %d off the reconstruction, %d "
+             "on an opening in A, %d photo-inconsistent, %d at the bladder neck", t_high,
+             info["median"], cfg.threshold_k, info["mad_sigma"], len(regions), dropped_small,
+             dropped_edge, dropped_far, dropped_dark, dropped_inconsistent, dropped_neck)
+    return regions, info

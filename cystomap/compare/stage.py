@@ -1,0 +1,469 @@
+"""Stage ``compare``: co-register two sessions, difference their textures, find the changes.
+
+Outputs in ``out_dir`` (written atomically, all or nothing):
+
+* ``registration.json``: ``registered`` (and ``reason`` when not), point and match counts,
+  inliers, the similarity A → B (``p_B = scale · R p_A + t``), the spline (smoothing chosen
+  by cross-validation, its scores), residuals (mm) of the inliers before and after the
+  spline (and held out), the dense flow correction;
+* ``changes.csv``: one row per changed region (header only when none or not registered):
+  ``id, x, y, z`` (centroid on session B's wall, B's model frame, mm), ``azimuth_deg,
+  elevation_deg`` (about B's atlas barycentre, B's atlas axes), ``area_mm2`` (wall area),
+  ``diameter_mm`` (sqrt(4 area / π)), ``mean_difference`` (mean colour difference, 0-255 RGB
+  units), ``score`` (largest significance in the region / threshold, > 1),
+  ``peak_significance`` (95th percentile), ``mean_significance`` (noise units), ``atlas_col, atlas_row``
+  (centroid in B's atlas.png), ``pixels`` (comparison-grid pixels), and the checks it
+  passed: ``inconsistency`` (photo-consistency in B's frames, empty if not tested),
+  ``enclosed`` (share of a ring around it compared), ``luminance_a``/``luminance_b``
+  (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points);
+  sorted by score;
+* ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
+  ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
+  change, black = not compared (not seen by both, or far from every inlier match);
+* ``significance.png``: the per-pixel significance (grey = threshold × 2 saturates; red =
+  above threshold), black = not compared;
+* ``changes.png``: B's atlas with the regions outlined (numbered by ``id``);
+* ``changes.glb``: B's textured model (glTF 2.0) with the regions tinted and outlined;
+* ``side_by_side.png``: A's atlas (left) and B's atlas (right), for manual comparison;
+* ``landmarks.csv`` and ``landmarks.png`` when landmarks are given (A → B, see
+  :mod:`cystomap.compare.landmarks`);
+* ``compare.json``: summary (registered, counts, threshold and noise level, regions
+  dropped by each check, compared area, dense-flow correction, directions of the bladder
+  neck (``opening_directions``), timings, settings).
+
+When the sessions cannot be co-registered the stage still succeeds: ``registration.json``
+says ``registered: false`` with the reason, ``changes.csv`` is empty (header only) and
+``side_by_side.png`` shows both atlases.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cystomap.compare.changes import CHANGE_COLUMNS, Region, detect, threshold_of
+from cystomap.compare.config import CompareConfig
+from cystomap.compare.difference import (
+    AtlasSampler,
+    SessionAtlas,
+    compose,
+    compute_difference,
+    difference_image,
+    refine_flow,
+    wall_grid,
+    warp_points,
+)
+from cystomap.compare.features import point_features
+from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
+from cystomap.compare.registration import Registration, register
+from cystomap.errors import InputError, StageError
+from cystomap.outputs import atomic_dir, write_json
+
+log = logging.getLogger(__name__)
+
+HIGHLIGHT = (255, 40, 200)  # magenta: not a mucosa colour
+
+
+@dataclass(frozen=True)
+class SessionPaths:
+    """The outputs of one session the comparison reads."""
+
+    sfm: Path  # COLMAP model (sfm stage)
+    preprocessed: Path  # enhanced/ frames (preprocess stage)
+    mesh: Path  # surface.ply (mesh stage)
+    atlas: Path  # atlas.png + atlas.json (atlas stage)
+
+    @classmethod
+    def from_root(cls, root: Path) -> SessionPaths:
+        """The standard layout: ``root/{sfm,preprocessed,mesh/surface.ply,atlas}``."""
+        root = Path(root)
+        return cls(root / "sfm", root / "preprocessed", root / "mesh" / "surface.ply",
+                   root / "atlas")
+
+    def check(self, what: str) -> None:
+        for p, kind in ((self.sfm, "SfM model directory"), (self.preprocessed,
+                        "preprocessed directory"), (self.atlas, "atlas directory")):
+            if not Path(p).is_dir():
+                raise InputError(f"session {what}: {kind} {p} not found")
+        if not Path(self.mesh).is_file():
+            raise InputError(f"session {what}: mesh {self.mesh} not found")
+
+
+def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
+                     cfg: CompareConfig | None = None, landmarks: Iterable[Any] = ()) -> Path:
+    """Compare session A (earlier) with session B; write the outputs into ``out_dir``.
+
+    Changes are what B shows and A did not, measured on B's wall in B's model frame.
+    """
+    cfg = cfg or CompareConfig()
+    a, b = _paths(a), _paths(b)
+    a.check("A")
+    b.check("B")
+    out_dir = Path(out_dir)
+    landmarks = list(landmarks)
+    t0 = time.perf_counter()
+    times: dict[str, float] = {}
+
+    def lap(name: str, since: float) -> float:
+        now = time.perf_counter()
+        times[name] = round(now - since, 3)
+        return now
+
+    t = t0
+    fa = point_features(a.sfm, a.preprocessed, cfg.keypoint_size_mm, cfg.min_track_length,
+                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads)
+    fb = point_features(b.sfm, b.preprocessed, cfg.keypoint_size_mm, cfg.min_track_length,
+                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads)
+    t = lap("descriptors", t)
+    reg = register(fa.xyz, fa.desc, fb.xyz, fb.desc, cfg)
+    t = lap("registration", t)
+    atlas_a = SessionAtlas.load(a.atlas, a.mesh)
+    atlas_b = SessionAtlas.load(b.atlas, b.mesh)
+    t = lap("load_atlases", t)
+    reg_json = reg.to_json()
+    reg_json["descriptors"] = {
+        "a": {"points_in_model": fa.n_points_model, "described": len(fa.ids),
+              "frames": fa.n_images},
+        "b": {"points_in_model": fb.n_points_model, "described": len(fb.ids),
+              "frames": fb.n_images},
+        "keypoint_size_mm": cfg.keypoint_size_mm}
+    summary: dict[str, Any] = {"session_a": _describe(a), "session_b": _describe(b),
+                               "registered": reg.registered}
+    regions: list[Region] = []
+    diff = None
+    det_info: dict[str, Any] = {}
+    if reg.registered:
+        try:
+            diff, grid_info = _difference(atlas_a, atlas_b, reg, cfg)
+        except InputError as exc:  # nothing seen by both: say so, do not crash
+            reg.registered = False
+            reg.reason = f"co-registered, but {exc}"
+            reg_json.update(registered=False, reason=reg.reason)
+            summary["registered"] = False
+        else:
+            reg_json["dense_flow"] = grid_info.pop("flow", {"flow": False})
+            t = lap("difference", t)
+            verify = None
+            if cfg.max_inconsistency > 0:
+                verify = _consistency_check(b, diff, atlas_b, cfg)
+            openings = (opening_directions(a, b, atlas_a, atlas_b, reg) if cfg.opening_deg > 0
+                        else np.zeros((0, 3)))
+            summary["opening_directions"] = openings.tolist()
+            regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
+            t = lap("changes", t)
+            summary.update(grid_info)
+    if not reg.registered:
+        log.warning("compare: the sessions could not be co-registered: %s. No changes are "
+                    "reported; side_by_side.png shows both atlases for manual comparison.",
+                    reg.reason)
+        summary["reason"] = reg.reason
+    lm_rows = map_landmarks(landmarks, atlas_a, atlas_b, reg) if landmarks else []
+
+    with atomic_dir(out_dir) as tmp:
+        write_json(tmp / "registration.json", reg_json)
+        _write_csv(tmp / "changes.csv", CHANGE_COLUMNS, [g.row() for g in regions])
+        _imwrite(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
+        if diff is not None:
+            _imwrite(tmp / "difference.png", difference_image(diff))
+            _imwrite(tmp / "significance.png",
+                     significance_image(diff.significance, diff.joint, det_info["threshold"]))
+            masks = region_masks(regions, diff.grid.shape, atlas_b.proj)
+            _imwrite(tmp / "changes.png", outline_atlas(atlas_b.rgba, masks, regions, cfg))
+            if cfg.model:
+                _write_model(tmp / "changes.glb", atlas_b, masks, cfg)
+        if landmarks:
+            _write_csv(tmp / "landmarks.csv", LANDMARK_COLUMNS, lm_rows)
+            _imwrite(tmp / "landmarks.png", draw_landmarks(atlas_b.rgba, lm_rows))
+        times["total"] = round(time.perf_counter() - t0, 3)
+        summary.update(
+            changes=len(regions),
+            detection={k: v for k, v in det_info.items()},
+            landmarks=len(lm_rows),
+            seconds=times,
+            config=asdict(cfg),
+        )
+        write_json(tmp / "compare.json", summary)
+    log.info("compare: %s, %d change(s) in %.1f s -> %s",
+             "registered" if reg.registered else "NOT registered", len(regions),
+             times["total"], out_dir)
+    return out_dir
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def _paths(p: Any) -> SessionPaths:
+    if isinstance(p, SessionPaths):
+        return SessionPaths(Path(p.sfm), Path(p.preprocessed), Path(p.mesh), Path(p.atlas))
+    if isinstance(p, str | Path):
+        return SessionPaths.from_root(Path(p))
+    raise InputError(f"expected SessionPaths or a session directory, got {p!r}")
+
+
+def _describe(p: SessionPaths) -> dict[str, str]:
+    return {k: str(v) for k, v in asdict(p).items()}
+
+
+def grid_scale(atlas: SessionAtlas, grid_mm: float) -> float:
+    """Scale of B's atlas giving equator pixels of about ``grid_mm`` on the wall."""
+    if grid_mm <= 0:
+        return 1.0
+    p = atlas.proj
+    az = np.linspace(-math.pi, math.pi, 72, endpoint=False)
+    d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1) @ p.axes
+    t, _ = atlas.rays.cast(p.barycentre, d)
+    t = t[np.isfinite(t)]
+    radius = float(np.median(t)) if len(t) else float(
+        np.median(np.linalg.norm(atlas.vertices - p.barycentre, axis=1)))
+    width = 2 * math.pi * radius / grid_mm
+    width = min(max(width, 64.0), 4096.0)
+    return width / p.width
+
+
+def _outside_cameras(sfm_dir: Path, atlas: SessionAtlas, rel: float = 0.95) -> np.ndarray:
+    """Centres (k, 3) of registered frames at or beyond the session's wall (radially from
+    its barycentre): the scope entering through the bladder neck."""
+    from cystomap.mesh import load_reconstruction
+
+    rec = load_reconstruction(sfm_dir)
+    c = np.array([im.projection_center() for im in rec.images.values() if im.has_pose],
+                 dtype=np.float64).reshape(-1, 3)
+    if not len(c):
+        return c
+    v = c - atlas.proj.barycentre
+    r = np.linalg.norm(v, axis=1)
+    t, _ = atlas.rays.cast(atlas.proj.barycentre, v / np.maximum(r, 1e-12)[:, None])
+    return c[np.isfinite(t) & (r >= rel * t)]
+
+
+def opening_directions(a: SessionPaths, b: SessionPaths, atlas_a: SessionAtlas,
+                       atlas_b: SessionAtlas, reg: Registration) -> np.ndarray:
+    """Unit directions (k, 3), from B's barycentre in B's frame, of the cameras of either
+    session at or beyond the wall (A's through the A → B warp)."""
+    pts = [_outside_cameras(b.sfm, atlas_b)]
+    outside_a = _outside_cameras(a.sfm, atlas_a)
+    if len(outside_a):
+        pts.append(reg.warp_ab(outside_a))
+    p = np.vstack(pts) - atlas_b.proj.barycentre
+    return p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
+
+
+def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
+                cfg: CompareConfig) -> tuple[Any, dict[str, Any]]:
+    scale = grid_scale(atlas_b, cfg.grid_mm)
+    proj_g, rgba_b = atlas_b.scaled(scale, cfg.min_views)
+    grid = wall_grid(proj_g, atlas_b.rays)
+    shape = grid.shape
+    sampler = AtlasSampler.of(atlas_a, scale, cfg.min_views)
+    pa = warp_points(grid, reg.warp_ba).reshape(shape[0], shape[1], 3)
+    maps = sampler.pixel_maps(pa.reshape(-1, 3), shape)
+    a_rgb, a_seen = sampler.sample(maps)
+    b_rgb, b_seen = rgba_b[..., :3], rgba_b[..., 3] > 0.999
+    supported, point_dist = _supported(grid, pa, reg, cfg)
+    b_seen = b_seen & supported
+    support_share = float(grid.area[supported].sum() / max(grid.area[grid.hit].sum(), 1e-9))
+    flow_info: dict[str, Any] = {"flow": False}
+    if cfg.flow_refine:
+        joint0 = grid.hit & b_seen & (a_seen > 0.999)
+        if joint0.sum() >= 100:
+            flow, flow_info = refine_flow(grid, b_rgb, a_rgb, joint0, cfg.flow_smooth_mm,
+                                          cfg.flow_max_mm)
+            if flow_info.get("flow"):
+                pa = compose(pa, flow)
+                maps = sampler.pixel_maps(pa.reshape(-1, 3), shape)
+                a_rgb, a_seen = sampler.sample(maps)
+    def hint(sig: np.ndarray, joint: np.ndarray) -> float:
+        return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
+
+    diff = compute_difference(grid, b_rgb, b_seen, a_rgb, a_seen > 0.999, cfg, hint)
+    diff.point_distance = point_dist
+    info = {"grid": {"width": shape[1], "height": shape[0],
+                     "mm_per_px": grid.mm_per_px_y},
+            "supported_share_of_b_wall": support_share,
+            "difference": diff.info, "flow": flow_info}
+    return diff, info
+
+
+def _consistency_check(b: SessionPaths, diff: Any, atlas_b: SessionAtlas,
+                       cfg: CompareConfig) -> Any:
+    """``verify`` callback of :func:`detect`: photo-consistency in session B's frames."""
+    from cystomap.compare.consistency import ViewSet, inconsistency
+
+    state: dict[str, Any] = {}
+    pts = diff.grid.points.reshape(-1, 3)
+    nrm = diff.grid.normals.reshape(-1, 3)
+
+    def verify(region: np.ndarray, ring: np.ndarray) -> dict[str, Any]:
+        if "views" not in state:
+            try:
+                state["views"] = ViewSet.load(b.sfm, b.preprocessed)
+            except InputError as exc:
+                log.warning("compare: photo-consistency check skipped (%s)", exc)
+                state["views"] = None
+        if state["views"] is None:
+            return {}
+        return inconsistency(state["views"], atlas_b.rays, pts[region], nrm[region], pts[ring],
+                             nrm[ring], cfg.consistency_views, cfg.seed)
+
+    return verify
+
+
+def _supported(grid: Any, pa: np.ndarray, reg: Registration,
+               cfg: CompareConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Grid pixels near an inlier match (``support_mm``) and near an SfM point of each
+    session (``point_support_mm``; A's through the warp), and per pixel the larger of the
+    two sessions' distances to their nearest SfM point (inf beyond 50 model units)."""
+    from scipy.spatial import cKDTree
+
+    ok = grid.hit.copy()
+    pts_b = np.where(grid.hit[..., None], grid.points, 0).reshape(-1, 3)
+
+    def dist(tree_pts: np.ndarray, query: np.ndarray, bound: float) -> np.ndarray:
+        if len(tree_pts) == 0:
+            return np.full(len(query), np.inf)
+        d, _ = cKDTree(tree_pts).query(query, distance_upper_bound=bound)
+        return d
+
+    if cfg.support_mm > 0:
+        inl = reg.matches[reg.inliers]
+        ok &= np.isfinite(dist(reg.b_points[inl[:, 1]], pts_b, cfg.support_mm)).reshape(
+            grid.shape)
+    point_dist = np.maximum(dist(reg.b_points, pts_b, 50.0),
+                            dist(reg.a_points, pa.reshape(-1, 3), 50.0)).reshape(grid.shape)
+    if cfg.point_support_mm > 0:
+        ok &= point_dist <= cfg.point_support_mm
+    return ok, point_dist
+
+
+# --------------------------------------------------------------------------- images
+
+
+def _imwrite(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)
+    elif img.ndim == 3:
+        img = img[..., ::-1]
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise StageError(f"cannot write {path}")
+
+
+def _rgb(rgba: np.ndarray, unseen: int = 0) -> np.ndarray:
+    rgb = rgba[..., :3].copy()
+    rgb[rgba[..., 3] == 0] = unseen
+    return rgb
+
+
+def side_by_side(rgba_a: np.ndarray, rgba_b: np.ndarray, gap: int = 8) -> np.ndarray:
+    """A's atlas (left) and B's (right) at B's height, unseen black, a white gap between."""
+    import cv2
+
+    h = rgba_b.shape[0]
+    a = _rgb(rgba_a)
+    if a.shape[0] != h:
+        a = cv2.resize(a, (round(a.shape[1] * h / a.shape[0]), h), interpolation=cv2.INTER_AREA)
+    b = _rgb(rgba_b)
+    sep = np.full((h, gap, 3), 255, np.uint8)
+    img = np.hstack([a, sep, b])
+    for text, x in (("A (earlier)", 10), ("B (later)", a.shape[1] + gap + 10)):
+        cv2.putText(img, text, (x, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.9, (255, 255, 255), 2,
+                    cv2.LINE_AA)
+    return img
+
+
+def significance_image(sig: np.ndarray, joint: np.ndarray, thr: float) -> np.ndarray:
+    g = np.clip(sig / max(2 * thr, 1e-9) * 255, 0, 255).astype(np.uint8)
+    img = np.dstack([g, g, g])
+    above = joint & (sig > thr)
+    img[above] = np.array([255, 0, 0], np.uint8)
+    img[~joint] = 0
+    return img
+
+
+def region_masks(regions: list[Region], shape: tuple[int, int], proj_full: Any) -> np.ndarray:
+    """(H, W) int32 labels (region id, 0 = none) at the full atlas size of ``proj_full``."""
+    import cv2
+
+    lab = np.zeros(shape[0] * shape[1], np.int32)
+    for g in regions:
+        lab[g.pixels] = g.id
+    lab = lab.reshape(shape)
+    if shape != (proj_full.height, proj_full.width):
+        lab = cv2.resize(lab.astype(np.float32), (proj_full.width, proj_full.height),
+                         interpolation=cv2.INTER_NEAREST).astype(np.int32)
+    return lab
+
+
+def _outline(mask: np.ndarray, width: int) -> np.ndarray:
+    import cv2
+
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))
+    m = mask.astype(np.uint8)
+    return (cv2.dilate(m, k) > 0) & ~(cv2.erode(m, k) > 0)
+
+
+def outline_atlas(rgba: np.ndarray, labels: np.ndarray, regions: list[Region],
+                  cfg: CompareConfig) -> np.ndarray:
+    """B's atlas (unseen black) with each region outlined and numbered."""
+    import cv2
+
+    img = _rgb(rgba)
+    edge = _outline(labels > 0, cfg.outline_px)
+    img[edge] = HIGHLIGHT
+    for g in regions:
+        x, y = round(float(g.atlas_col)), round(float(g.atlas_row))
+        r = max(6, round(float(math.sqrt(len(g.pixels)))))
+        cv2.putText(img, str(g.id), (x + r, y - r), cv2.FONT_HERSHEY_SIMPLEX, 0.8,
+                    (255, 255, 255), 3, cv2.LINE_AA)
+        cv2.putText(img, str(g.id), (x + r, y - r), cv2.FONT_HERSHEY_SIMPLEX, 0.8, HIGHLIGHT,
+                    2, cv2.LINE_AA)
+    return img
+
+
+def _write_model(path: Path, atlas_b: SessionAtlas, labels: np.ndarray,
+                 cfg: CompareConfig) -> None:
+    import cv2
+
+    from cystomap.atlas.model import uv_unwrap, write_glb
+
+    tex = _rgb(atlas_b.rgba, unseen=96).astype(np.float32)
+    inside = labels > 0
+    tex[inside] = 0.5 * tex[inside] + 0.5 * np.array(HIGHLIGHT, np.float32)
+    tex[_outline(inside, cfg.outline_px)] = HIGHLIGHT
+    tex = np.clip(np.rint(tex), 0, 255).astype(np.uint8)
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(tex[..., ::-1]))
+    if not ok:
+        raise StageError("cannot encode the changes texture")
+    tm = uv_unwrap(atlas_b.vertices, atlas_b.faces, atlas_b.proj)
+    write_glb(path, tm, png.tobytes(), name="bladder wall, changes highlighted")
+
+
+def draw_landmarks(rgba: np.ndarray, rows: list[dict[str, Any]]) -> np.ndarray:
+    import cv2
+
+    img = _rgb(rgba)
+    for r in rows:
+        if r.get("status") != "ok":
+            continue
+        x, y = round(float(r["atlas_col"])), round(float(r["atlas_row"]))
+        cv2.drawMarker(img, (x, y), (0, 255, 255), cv2.MARKER_CROSS, 24, 3)
+        cv2.putText(img, str(r["name"]), (x + 10, y - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.8,
+                    (0, 255, 255), 2, cv2.LINE_AA)
+    return img
+
+
+def _write_csv(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(columns))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})

@@ -1,0 +1,302 @@
+"""Stage ``compare`` on small phantom pairs.
+
+Each session is rendered (480x270, few frames), decoded and preprocessed by the real stages;
+its SfM model is a stand-in built from the phantom's true poses and wall (SIFT keypoints of
+the enhanced frames back-projected onto the true wall and chained into tracks), so these
+tests do not depend on how well SfM registers a short video; session B's stand-in is put in a
+frame of its own (rotated, shifted, scaled) as a real SfM model would be. Mesh and atlas are
+the real stages. Sessions are built once per test session.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cystomap.atlas import AtlasConfig, build_atlas
+from cystomap.atlas.projection import SurfaceRays
+from cystomap.camera import Camera
+from cystomap.compare import CompareConfig, Landmark, SessionPaths, compare_sessions
+from cystomap.compare.registration import Similarity, msac, mutual_matches, umeyama
+from cystomap.evaluate import evaluate_changes
+from cystomap.frames import FramesConfig, extract_frames
+from cystomap.mesh import MeshConfig, build_mesh, read_mesh
+from cystomap.phantom import PhantomConfig, default_camera, generate_session
+from cystomap.preprocess import PreprocessConfig, preprocess_frames
+
+CAMERA = default_camera(480, 270)
+N_FRAMES = 48
+CUBE = 1024  # texture cube-map face (texels): quicker to bake than the 0.1 mm default
+ATLAS = AtlasConfig(width=1024, height=512)
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+
+
+def truth_model(truth: Path, pre: Path, out: Path, frame: Similarity) -> None:
+    """A COLMAP text model from the true poses and wall, in ``frame`` (world → model)."""
+    import cv2
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    cam = Camera.load(pre / "camera.json")
+    poses = pd.read_csv(truth / "poses.csv").set_index("frame")
+    verts, faces = read_mesh(truth / "surface.ply")
+    rays = SurfaceRays(verts, faces)
+    mask = cv2.imread(str(pre / "mask.png"), cv2.IMREAD_GRAYSCALE)
+    sift = cv2.SIFT_create(nfeatures=500)
+    names = sorted(p.name for p in (pre / "enhanced").glob("f*.png"))
+    obs_img, obs_xy, obs_x = [], [], []
+    cams = {}
+    for i, name in enumerate(names):
+        row = poses.loc[int(name[1:7])]
+        r_cw = Rotation.from_quat([row.qx, row.qy, row.qz, row.qw]).as_matrix()
+        c = np.array([row.tx, row.ty, row.tz])
+        cams[i] = (r_cw, c)
+        grey = cv2.imread(str(pre / "enhanced" / name), cv2.IMREAD_GRAYSCALE)
+        kps = sift.detect(grey, mask)
+        if not kps:
+            continue
+        uv = np.array([k.pt for k in kps])
+        d = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
+                             np.ones(len(uv))])
+        d = (d / np.linalg.norm(d, axis=1, keepdims=True)) @ r_cw.T
+        t, _ = rays.cast(c, d)
+        hit = np.isfinite(t)
+        obs_img += [i] * int(hit.sum())
+        obs_xy.append(uv[hit])
+        obs_x.append(c + t[hit, None] * d[hit])
+    img = np.asarray(obs_img)
+    xy = np.vstack(obs_xy)
+    x = np.vstack(obs_x)
+    pairs = cKDTree(x).query_pairs(0.4, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(x),) * 2)
+    _, comp = connected_components(graph, directed=False)
+    points, tracks = [], []
+    for k in np.unique(comp):
+        members = np.flatnonzero(comp == k)
+        _, first = np.unique(img[members], return_index=True)
+        members = members[first]  # one observation per image
+        if len(members) >= 2:
+            points.append(x[members].mean(axis=0))
+            tracks.append(members)
+    out.mkdir(parents=True)
+    (out / "cameras.txt").write_text(
+        f"1 PINHOLE {cam.width} {cam.height} {cam.fx} {cam.fy} {cam.cx + 0.5} {cam.cy + 0.5}\n")
+    point_of = {}
+    for pid, members in enumerate(tracks, start=1):
+        for m in members:
+            point_of[m] = pid
+    lines = []
+    for i, name in enumerate(names):
+        r_cw, c = cams[i]
+        r_cw2 = frame.rotation @ r_cw
+        c2 = frame.apply(c[None])[0]
+        r_wc = r_cw2.T
+        q = Rotation.from_matrix(r_wc).as_quat()  # x, y, z, w
+        t = -r_wc @ c2
+        lines.append(f"{i + 1} {q[3]} {q[0]} {q[1]} {q[2]} {t[0]} {t[1]} {t[2]} 1 {name}")
+        mine = np.flatnonzero(img == i)
+        lines.append(" ".join(f"{xy[m, 0] + 0.5} {xy[m, 1] + 0.5} {point_of.get(m, -1)}"
+                              for m in mine))
+    (out / "images.txt").write_text("\n".join(lines) + "\n")
+    idx_in_image = {m: j for i in range(len(names))
+                    for j, m in enumerate(np.flatnonzero(img == i))}
+    rows = []
+    for pid, (p, members) in enumerate(zip(points, tracks, strict=True), start=1):
+        p2 = frame.apply(p[None])[0]
+        track = " ".join(f"{img[m] + 1} {idx_in_image[m]}" for m in members)
+        rows.append(f"{pid} {p2[0]} {p2[1]} {p2[2]} 128 128 128 0.3 {track}")
+    (out / "points3D.txt").write_text("\n".join(rows) + "\n")
+
+
+def build_session(root: Path, session: int, cfg: PhantomConfig, frame: Similarity) -> Path:
+    if (root / "atlas").is_dir():  # cached (CYSTOMAP_TEST_CACHE)
+        return root
+    generate_session(root / "truth", session, cfg, CAMERA)
+    extract_frames(root / "truth" / "video.mp4", root / "frames", FramesConfig(), CAMERA)
+    preprocess_frames(root / "frames", root / "preprocessed", CAMERA, PreprocessConfig())
+    truth_model(root / "truth", root / "preprocessed", root / "sfm", frame)
+    build_mesh(root / "sfm", root / "mesh", MeshConfig(icosphere_subdivisions=4))
+    build_atlas(root / "sfm", root / "preprocessed", root / "mesh" / "surface.ply",
+                root / "atlas", ATLAS)
+    return root
+
+
+B_FRAME = Similarity(_rotation(np.array([1.0, -2.0, 0.5]), 70.0), np.array([12.0, -30.0, 5.0]),
+                     0.8)  # session B's model frame relative to the world (as SfM would)
+
+
+@pytest.fixture(scope="session")
+def sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    cache = os.environ.get("CYSTOMAP_TEST_CACHE")  # developers: keep the renders between runs
+    root = Path(cache) / "compare" if cache else tmp_path_factory.mktemp("compare")
+    base = PhantomConfig(n_frames=N_FRAMES, cube_face_px=CUBE)
+    out = {
+        "s1": build_session(root / "s1", 1, base, Similarity()),
+        "s2": build_session(root / "s2", 2, base, B_FRAME),
+        "s2_deformed": build_session(root / "s2d", 2, PhantomConfig(n_frames=N_FRAMES,
+                                     cube_face_px=CUBE, deformation=0.07), B_FRAME),
+        "s2_nochange": build_session(root / "s2n", 2, PhantomConfig(n_frames=N_FRAMES,
+                                     cube_face_px=CUBE, lesion_diameters_mm=()), B_FRAME),
+        "other": build_session(root / "o1", 1, PhantomConfig(n_frames=N_FRAMES // 2,
+                               cube_face_px=CUBE, seed=8),
+                               B_FRAME),
+    }
+    return out
+
+
+def _run(sessions: dict[str, Path], a: str, b: str, out: Path, **kw) -> tuple[Path, float]:
+    t0 = time.perf_counter()
+    compare_sessions(SessionPaths.from_root(sessions[a]), SessionPaths.from_root(sessions[b]),
+                     out, CompareConfig(**kw))
+    return out, time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------- units
+
+
+def test_mutual_matches_and_msac_recover_a_similarity() -> None:
+    rng = np.random.default_rng(0)
+    desc = rng.normal(size=(300, 128))
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    noisy = desc + 0.02 * rng.normal(size=desc.shape)
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    perm = rng.permutation(300)
+    i, j = mutual_matches(desc, noisy[perm], 0.85)
+    assert len(i) == 300 and (perm[j] == i).all()
+    x = rng.uniform(-60, 60, size=(200, 3))
+    true = Similarity(_rotation(np.array([0.3, 1.0, -0.2]), 40.0), np.array([5.0, 1.0, -3.0]),
+                      1.2)
+    y = true.apply(x) + rng.normal(0, 0.3, size=x.shape)
+    y[:60] = rng.uniform(-60, 60, size=(60, 3))  # 30 % outliers
+    res = msac(x, y, 3.0, 500, seed=1)
+    assert res is not None and res.inliers[60:].mean() > 0.95 and res.inliers[:60].mean() < 0.1
+    assert abs(res.transform.scale - 1.2) < 0.01
+    assert np.allclose(res.transform.rotation, true.rotation, atol=0.01)
+    back = umeyama(y[60:], x[60:])
+    assert back is not None and abs(back.scale - 1 / 1.2) < 0.01
+
+
+def test_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError, match="transform"):
+        CompareConfig(transform="affine")
+    with pytest.raises(ValueError, match="threshold_k"):
+        CompareConfig(threshold_k=0)
+
+
+# --------------------------------------------------------------------------- phantom pairs
+
+
+def _score(sessions: dict[str, Path], b: str, out: Path) -> dict:
+    return evaluate_changes(sessions[b] / "truth", sessions[b] / "sfm", out / "changes.csv")
+
+
+def _check_lesions(score: dict, table: pd.DataFrame) -> None:
+    """Most lesions (the 5 mm one included) found, at most one spurious region; the lesions
+    compared whole (not cut by an unseen gap of an atlas: ring around them seen by both)
+    within 2 mm and 20 % of their size."""
+    found = [e for e in score["lesions"] if e["detected"]]
+    assert score["n_matched"] >= 4, score["lesions"]
+    assert score["false_positives"] <= 1, (score["false_positive_rows"], table)
+    assert any(e["diameter_mm"] == 5.0 for e in found), "the 5 mm lesion"
+    whole = [e for e in found if table["enclosed"].iloc[e["detection_row"]] >= 0.85]
+    assert len(whole) >= 3, found
+    for e in whole:
+        assert e["localisation_error_mm"] <= 2.0, e
+        assert abs(e["size_error_percent"]) <= 20, e
+
+
+def test_lesions_are_found_located_and_sized(sessions, tmp_path) -> None:
+    out, seconds = _run(sessions, "s1", "s2", tmp_path / "cmp")
+    reg = json.loads((out / "registration.json").read_text())
+    assert reg["registered"] and reg["inliers"] >= 25
+    # B's stand-in model is 0.8 × the world: the similarity A → B recovers it
+    assert abs(reg["transform_a_to_b"]["scale"] - 0.8) < 0.02
+    assert reg["residual_mm"]["after_spline"]["rms"] <= reg["residual_mm"]["before_spline"]["rms"]
+    table = pd.read_csv(out / "changes.csv")
+    score = _score(sessions, "s2", out)["lesions"]
+    _check_lesions(score, table)
+    assert (table["diameter_mm"] - np.sqrt(4 * table["area_mm2"] / math.pi)).abs().max() < 1e-3
+    assert (table["score"] > 1).all()
+    for name in ("difference.png", "significance.png", "changes.png", "changes.glb",
+                 "side_by_side.png", "compare.json"):
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "compare.json").read_text())
+    assert summary["changes"] == len(table)
+    assert seconds < 60
+
+
+def test_deformed_pair(sessions, tmp_path) -> None:
+    out, _ = _run(sessions, "s1", "s2_deformed", tmp_path / "cmp")
+    reg = json.loads((out / "registration.json").read_text())
+    assert reg["registered"] and reg["spline"]["spline"], "the deformation needs the spline"
+    _check_lesions(_score(sessions, "s2_deformed", out)["lesions"],
+                   pd.read_csv(out / "changes.csv"))
+
+
+def test_no_change_gives_no_change(sessions, tmp_path) -> None:
+    out, _ = _run(sessions, "s1", "s2_nochange", tmp_path / "cmp")
+    assert json.loads((out / "registration.json").read_text())["registered"]
+    assert len(pd.read_csv(out / "changes.csv")) == 0
+
+
+def test_unrelated_sessions_are_not_registered(sessions, tmp_path) -> None:
+    out, _ = _run(sessions, "s1", "other", tmp_path / "cmp")
+    reg = json.loads((out / "registration.json").read_text())
+    assert reg["registered"] is False and reg["reason"]
+    table = pd.read_csv(out / "changes.csv")
+    assert len(table) == 0 and "diameter_mm" in table.columns
+    assert (out / "side_by_side.png").is_file()
+    assert not (out / "difference.png").exists()
+
+
+def test_landmarks_are_found_back(sessions, tmp_path) -> None:
+    """Sites marked in A (an atlas pixel and a model point) land where they are in B."""
+    a, b = sessions["s1"], sessions["s2"]
+    les = pd.read_csv(b / "truth" / "lesions.csv")
+    site = les[["x", "y", "z"]].to_numpy(float)[:2]  # world frame = session A's model frame
+    meta = json.loads((a / "atlas" / "atlas.json").read_text())
+    from cystomap.atlas.projection import Projection
+
+    col, row = Projection.from_json(meta).point_to_pixel(site[1:2])
+    marks = [Landmark("by_point", point=tuple(site[0])),
+             Landmark("by_pixel", col=float(col[0]), row=float(row[0]))]
+    out = tmp_path / "cmp"
+    compare_sessions(SessionPaths.from_root(a), SessionPaths.from_root(b), out,
+                     CompareConfig(max_inconsistency=0), landmarks=marks)
+    with open(out / "landmarks.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["name"] for r in rows] == ["by_point", "by_pixel"]
+    expect = B_FRAME.apply(site)
+    for r, e in zip(rows, expect, strict=True):
+        assert r["status"] == "ok"
+        got = np.array([float(r["x"]), float(r["y"]), float(r["z"])])
+        assert np.linalg.norm(got - e) < 3.0 * B_FRAME.scale, (r, e)
+    assert (out / "landmarks.png").is_file()
+
+
+def test_missing_inputs_are_named(sessions, tmp_path) -> None:
+    from cystomap.errors import InputError
+
+    paths = SessionPaths.from_root(sessions["s1"])
+    bad = SessionPaths(paths.sfm, paths.preprocessed, tmp_path / "nope.ply", paths.atlas)
+    with pytest.raises(InputError, match=r"nope\.ply"):
+        compare_sessions(paths, bad, tmp_path / "out", CompareConfig())
+    assert not (tmp_path / "out").exists()
