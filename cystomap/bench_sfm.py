@@ -140,17 +140,24 @@ COLUMNS = ("session", "method", "runs", "frames", "registered", "models", "large
 
 
 def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: int,
-          baseline_sessions: Sequence[str]) -> list[dict[str, Any]]:
+          baseline_sessions: Sequence[str], earlier: Sequence[dict[str, Any]] = ()
+          ) -> list[dict[str, Any]]:
     from cystomap.evaluate import load_truth
 
+    reuse = {r["session"]: r for r in earlier if r.get("method") == "pycolmap defaults"}
     rows = []
     for tag in sessions:
         truth_dir, pre = prepare(work, tag, SESSIONS[tag])
         extent = load_truth(truth_dir).extent_mm
         methods = [("cystomap", repeats)]
+        totals: dict[str, tuple[float, float]] = {}
         if tag in baseline_sessions and baseline_repeats > 0:
             methods.append(("pycolmap defaults", baseline_repeats))
-        totals: dict[str, float] = {}
+        elif tag in reuse:
+            row = dict(reuse[tag], reused=True)
+            rows.append(row)
+            totals["pycolmap defaults"] = (row["t_total"] or float("nan"),
+                                           row.get("cpu_total") or float("nan"))
         for method, runs in methods:
             times: list[dict[str, float]] = []
             out = work / tag / ("sfm" if method == "cystomap" else "defaults")
@@ -176,8 +183,9 @@ def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: i
         base = totals.get("pycolmap defaults")
         for row in rows:
             if row["session"] == tag and base:
-                row["speedup"] = base[0] / row["t_total"] if row["t_total"] else None
-                row["speedup_cpu"] = base[1] / row["cpu_total"] if row["cpu_total"] else None
+                wall, cpu = row.get("t_total"), row.get("cpu_total")
+                row["speedup"] = base[0] / wall if wall else None
+                row["speedup_cpu"] = base[1] / cpu if cpu and base[1] == base[1] else None
     return rows
 
 
@@ -225,6 +233,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--baseline-repeats", type=int, default=1, help="runs of pycolmap's defaults")
     p.add_argument("--baseline-sessions", default="default",
                    help="sessions on which the defaults run too (slow)")
+    p.add_argument("--reuse-baseline", type=Path, default=None,
+                   help="an earlier sfm.json whose pycolmap-defaults rows are reused "
+                        "(for sessions where the defaults do not run now)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     sessions = [s for s in args.sessions.split(",") if s]
@@ -236,8 +247,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     import pycolmap
 
     load = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    earlier = json.loads(args.reuse_baseline.read_text())["rows"] if args.reuse_baseline else []
     rows = bench(args.work, sessions, args.repeats, args.baseline_repeats,
-                 [s for s in args.baseline_sessions.split(",") if s])
+                 [s for s in args.baseline_sessions.split(",") if s], earlier)
     meta = {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "load": load,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:]}
     write_tables(args.out, rows, meta)

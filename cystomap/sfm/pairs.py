@@ -48,10 +48,14 @@ def kmeans(data: np.ndarray, k: int, rng: np.random.Generator, iterations: int =
 
 
 def _sum_by(assign: np.ndarray, data: np.ndarray, k: int) -> np.ndarray:
-    """Row sums of ``data`` per label (k x d), via a one-hot matrix product."""
-    onehot = np.zeros((k, len(assign)), dtype=np.float32)
-    onehot[assign, np.arange(len(assign))] = 1.0
-    return onehot @ data
+    """Row sums of ``data`` per label (k x d)."""
+    out = np.zeros((k, data.shape[1]), dtype=np.float32)
+    if not len(assign):
+        return out
+    order = np.argsort(assign, kind="stable")
+    labels, starts = np.unique(assign[order], return_index=True)
+    out[labels] = np.add.reduceat(data[order], starts, axis=0)
+    return out
 
 
 def _nearest(data: np.ndarray, centres: np.ndarray) -> np.ndarray:
