@@ -26,6 +26,7 @@ from typing import Any
 
 from cystomap.camera import Camera
 from cystomap.outputs import atomic_file, write_json
+from cystomap.video import iter_frames
 
 log = logging.getLogger("cystomap.bench_sfm")
 
@@ -57,15 +58,9 @@ def prepare(work: Path, tag: str, overrides: dict[str, Any]) -> tuple[Path, Path
         frames = root / "frames"
         shutil.rmtree(frames, ignore_errors=True)
         frames.mkdir(parents=True)
-        cap = cv2.VideoCapture(str(truth / "video.mp4"))
         n = 0
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                break
+        for n, _, img in iter_frames(truth / "video.mp4"):
             cv2.imwrite(str(frames / f"f{n:06d}.png"), img)
-            n += 1
-        cap.release()
         log.info("%s: %d frames decoded; preprocessing", tag, n)
         preprocess_frames(frames, pre, CAMERA, PreprocessConfig())
         shutil.rmtree(frames, ignore_errors=True)

@@ -54,6 +54,7 @@ from cystomap.atlas.texture import (
     view_weights,
 )
 from cystomap.errors import InputError, StageError
+from cystomap.images import imwrite_rgb
 from cystomap.mesh import load_reconstruction, read_mesh, volume_centroid
 from cystomap.outputs import atomic_dir, write_json
 
@@ -303,8 +304,8 @@ def build_atlas(
         "config": asdict(cfg),
     }
     with atomic_dir(out_dir) as tmp:
-        _imwrite(tmp / "atlas.png", atlas)
-        _imwrite(tmp / "coverage.png", coverage_image(result.n_views.reshape(h, w),
+        imwrite_rgb(tmp / "atlas.png", atlas)
+        imwrite_rgb(tmp / "coverage.png", coverage_image(result.n_views.reshape(h, w),
                                                       cfg.coverage_max_views))
         if cfg.model:
             texture = np.full((h * w, 3), cfg.unseen_grey, np.uint8)
@@ -328,17 +329,6 @@ def build_atlas(
     log.info("%s: coverage %.1f%% of the wall, %d frames contributed (%.1f s)", out_dir,
              coverage, result.contributing, time.perf_counter() - t0)
     return out_dir
-
-
-def _imwrite(path: Path, img: np.ndarray) -> None:
-    import cv2
-
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)
-    elif img.ndim == 3:
-        img = img[..., ::-1]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
-        raise StageError(f"cannot write {path}")
 
 
 def coverage_image(n_views: np.ndarray, max_views: int) -> np.ndarray:

@@ -65,6 +65,7 @@ from cystomap.compare.features import point_features
 from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
 from cystomap.compare.registration import Registration, register
 from cystomap.errors import InputError, StageError
+from cystomap.images import imwrite_rgb
 from cystomap.outputs import atomic_dir, write_json
 
 log = logging.getLogger(__name__)
@@ -170,18 +171,18 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     with atomic_dir(out_dir) as tmp:
         write_json(tmp / "registration.json", reg_json)
         _write_csv(tmp / "changes.csv", CHANGE_COLUMNS, [g.row() for g in regions])
-        _imwrite(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
+        imwrite_rgb(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
         if diff is not None:
-            _imwrite(tmp / "difference.png", difference_image(diff))
-            _imwrite(tmp / "significance.png",
+            imwrite_rgb(tmp / "difference.png", difference_image(diff))
+            imwrite_rgb(tmp / "significance.png",
                      significance_image(diff.significance, diff.joint, det_info["threshold"]))
             masks = region_masks(regions, diff.grid.shape, atlas_b.proj)
-            _imwrite(tmp / "changes.png", outline_atlas(atlas_b.rgba, masks, regions, cfg))
+            imwrite_rgb(tmp / "changes.png", outline_atlas(atlas_b.rgba, masks, regions, cfg))
             if cfg.model:
                 _write_model(tmp / "changes.glb", atlas_b, masks, cfg)
         if landmarks:
             _write_csv(tmp / "landmarks.csv", LANDMARK_COLUMNS, lm_rows)
-            _imwrite(tmp / "landmarks.png", draw_landmarks(atlas_b.rgba, lm_rows))
+            imwrite_rgb(tmp / "landmarks.png", draw_landmarks(atlas_b.rgba, lm_rows))
         times["total"] = round(time.perf_counter() - t0, 3)
         summary.update(
             changes=len(regions),
@@ -344,17 +345,6 @@ def _supported(grid: Any, pa: np.ndarray, reg: Registration,
 
 
 # --------------------------------------------------------------------------- images
-
-
-def _imwrite(path: Path, img: np.ndarray) -> None:
-    import cv2
-
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)
-    elif img.ndim == 3:
-        img = img[..., ::-1]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
-        raise StageError(f"cannot write {path}")
 
 
 def _rgb(rgba: np.ndarray, unseen: int = 0) -> np.ndarray:
