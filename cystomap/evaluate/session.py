@@ -37,7 +37,8 @@ SUMMARY_KEYS = (
     "trajectory.scale_error", "trajectory.rotation_error_deg_median",
     "surface.accuracy_mean_mm", "surface.accuracy_median_mm", "surface.completeness",
     "atlas.coverage_percent", "atlas.coverage_percent_true", "atlas.coverage_error_pp",
-    "atlas.mask_iou", "atlas.albedo_correlation",
+    "atlas.mask_iou", "atlas.albedo_correlation", "atlas.ssim", "atlas.ssim_stretched",
+    "atlas.detail_correlation", "atlas.sharpness_ratio",
     "alignment.rmse_mm", "lesions.recall", "lesions.false_positives",
     "lesions.localisation_error_mm_mean", "lesions.size_error_percent_mean",
 )

@@ -28,16 +28,20 @@ log = logging.getLogger(__name__)
 def score_surface(truth: Truth, mesh_ply: Path, sim3: Sim3, cfg: EvalConfig) -> dict[str, Any]:
     """Accuracy and completeness of a mesh given in the model frame (``sim3``: model → truth).
 
-    accuracy: distances from points sampled on the reconstructed mesh to the true surface;
-    completeness: share of points sampled on the seen part of the true wall (``seen.png``
-    about the truth barycentre) lying within ``cfg.completeness_threshold_mm`` of the mesh.
+    accuracy: distances from points sampled on the reconstructed mesh to the true surface,
+    leaving out the part that bridges an opening of the true wall (the aperture into the
+    urethra, where a closed mesh must differ from the open truth; ``Truth.in_opening``), which
+    is scored on its own (``closure_*``); completeness: share of points sampled on the seen
+    part of the true wall (``seen.png`` about the truth barycentre) lying within ``cfg.completeness_threshold_mm`` of the mesh.
     """
     rng = np.random.default_rng(cfg.seed)
     recon = read_mesh(mesh_ply).transformed(sim3)
     true_mesh = truth.surface
     origin = truth.barycentre
     rec_pts = sample_surface(recon, cfg.surface_samples, rng)
-    acc = SurfaceQuery(true_mesh, origin).distance(rec_pts)
+    acc_all = SurfaceQuery(true_mesh, origin).distance(rec_pts)
+    opening = truth.in_opening(rec_pts)
+    acc = acc_all[~opening] if (~opening).any() else acc_all
     true_pts = sample_surface(true_mesh, cfg.surface_samples, rng)
     seen = seen_at(truth, true_pts)
     dist = SurfaceQuery(recon, origin).distance(true_pts)
@@ -47,6 +51,10 @@ def score_surface(truth: Truth, mesh_ply: Path, sim3: Sim3, cfg: EvalConfig) -> 
         "accuracy_mean_mm": float(acc.mean()),
         "accuracy_median_mm": float(np.median(acc)),
         "accuracy_p90_mm": float(np.percentile(acc, 90)),
+        "accuracy_within_2mm": float((acc <= 2.0).mean()),
+        "accuracy_mean_mm_with_closure": float(acc_all.mean()),
+        "closure_share": float(opening.mean()),
+        "closure_mean_mm": float(acc_all[opening].mean()) if opening.any() else None,
         "completeness_threshold_mm": cfg.completeness_threshold_mm,
         "completeness": float(close[seen].mean()) if seen.any() else None,
         "completeness_whole_wall": float(close.mean()),
@@ -132,6 +140,7 @@ def _score_atlas_image(
     in_model = sim3.inverse().apply(wall)
     row, col = equirect_pixels(in_model - atlas_b, *atlas.shape[:2])
     px = atlas[row, col]
+    smooth = _bilinear(atlas, in_model - atlas_b)  # for the image comparison
     if atlas.ndim == 2:
         painted_hit, grey_hit = px > 0, px
     elif atlas.shape[2] in (2, 4):
@@ -158,4 +167,80 @@ def _score_atlas_image(
         out["albedo_correlation"] = float(np.corrcoef(grey[both], albedo[both])[0, 1])
     else:
         out["albedo_correlation"] = None
+    resampled = np.zeros(len(dirs))
+    resampled[hit] = smooth if atlas.ndim == 2 else (
+        smooth[:, :-1].mean(axis=1) if atlas.shape[2] in (2, 4) else smooth.mean(axis=1))
+    out.update(_image_similarity(truth.albedo, resampled.reshape(h, w), both.reshape(h, w),
+                                 weight.reshape(h, w)))
+    return out
+
+
+def _bilinear(atlas: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Atlas values at ``directions`` (from the atlas barycentre), bilinear, wrapping in azimuth."""
+    import cv2
+
+    h, w = atlas.shape[:2]
+    az = np.arctan2(directions[:, 1], directions[:, 0])
+    el = np.arctan2(directions[:, 2], np.hypot(directions[:, 0], directions[:, 1]))
+    col = ((az + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
+    row = ((np.pi / 2 - el) / np.pi * h - 0.5).astype(np.float32)
+    n, width = len(directions), 4096  # remap wants maps of < 32767 rows and columns
+    pad = -n % width
+    col, row = (np.pad(v, (0, pad)).reshape(-1, width) for v in (col, row))
+    out = cv2.remap(atlas.astype(np.float32), col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out.reshape(-1, *atlas.shape[2:])[:n].astype(np.float64)
+
+
+def _image_similarity(
+    albedo: np.ndarray, atlas: np.ndarray, mask: np.ndarray, weight: np.ndarray
+) -> dict[str, Any]:
+    """How well the atlas (resampled onto the truth grid) reproduces the true albedo.
+
+    Only where the wall is seen and painted, away from the mask's border by the SSIM window,
+    averaged with the wall-area weights. The atlas is in arbitrary exposure units, so it is
+    first scaled by the least-squares gain to the albedo (one number for the whole image:
+    local contrast, blur and ghosting are still scored).
+
+    - ``ssim``: SSIM (Wang et al. 2004; Gaussian window σ = 1.5 px) on the 0..255 scale.
+      Lenient on a low-contrast wall, whose variance is small next to SSIM's constants, so also
+    - ``ssim_stretched``: the same with the data range set to the albedo's own 1st-99th
+      percentile range on the scored area (as if both images were contrast-stretched);
+    - ``detail_correlation``: correlation of the high-pass parts (minus a Gaussian blur of
+      σ = 8 px): vessels and grain in the right place, blind to slow shading differences;
+    - ``sharpness_ratio``: mean gradient magnitude of the atlas over that of the albedo
+      (1 = as sharp; blur or ghosting lowers it, noise raises it).
+    """
+    import cv2
+    from skimage.metrics import structural_similarity
+
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    if inner.sum() < 100:
+        return {k: None for k in ("ssim", "ssim_stretched", "detail_correlation", "sharpness_ratio")}
+    a, b = albedo[inner], atlas[inner]
+    gain = float((a * b).sum() / max((b * b).sum(), 1e-12))
+    scaled = np.clip(atlas * gain, 0, 255)
+    wts = weight[inner]
+    out: dict[str, Any] = {"exposure_gain": gain}
+    lo, hi = np.percentile(a, [1, 99])
+    for key, data_range in (("ssim", 255.0), ("ssim_stretched", max(float(hi - lo), 1.0))):
+        _, ssim_map = structural_similarity(albedo, scaled, data_range=data_range, full=True,
+                                            gaussian_weights=True, sigma=1.5,
+                                            use_sample_covariance=False)
+        out[key] = float(np.average(ssim_map[inner], weights=wts))
+
+    def high_pass(img: np.ndarray) -> np.ndarray:
+        img = img.astype(np.float32)
+        return (img - cv2.GaussianBlur(img, (0, 0), 8.0))[inner]
+
+    def gradient(img: np.ndarray) -> np.ndarray:
+        img = img.astype(np.float32)
+        gx, gy = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+        return np.hypot(gx, gy)[inner]
+
+    ha, hb = high_pass(albedo), high_pass(scaled)
+    out["detail_correlation"] = (float(np.corrcoef(ha, hb)[0, 1])
+                                 if ha.std() > 0 and hb.std() > 0 else None)
+    g_true = float(np.average(gradient(albedo), weights=wts))
+    out["sharpness_ratio"] = (float(np.average(gradient(scaled), weights=wts)) / g_true
+                              if g_true > 0 else None)
     return out

@@ -74,6 +74,20 @@ class Truth:
     def seen_fraction(self) -> float:
         return float(self.meta["seen_fraction"])
 
+    def in_opening(self, points: np.ndarray) -> np.ndarray:
+        """Whether each point lies, seen from the barycentre, in the cone of an opening of the
+        wall (truth.json ``aperture``: azimuth_deg, elevation_deg, angular_radius_deg), where
+        the true surface is open and a closed reconstruction must bridge the gap."""
+        ap = self.meta.get("aperture")
+        d = np.asarray(points, dtype=np.float64) - self.barycentre
+        if not isinstance(ap, dict) or not {"azimuth_deg", "elevation_deg",
+                                             "angular_radius_deg"} <= ap.keys():
+            return np.zeros(len(d), dtype=bool)
+        az, el = np.radians(float(ap["azimuth_deg"])), np.radians(float(ap["elevation_deg"]))
+        axis = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        cos = d @ axis / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        return cos > np.cos(np.radians(float(ap["angular_radius_deg"])))
+
     @cached_property
     def camera(self) -> Camera:
         return Camera.load(self._file("camera.json"))
