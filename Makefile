@@ -8,7 +8,7 @@ CORES ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PKGS :=
 
-.PHONY: setup run test lint bench clean
+.PHONY: setup run test lint browser bench clean
 
 $(STAMP): pyproject.toml
 	@# open3d needs libusb-1.0-0; Debian's python3 needs python3-venv for `-m venv`.
@@ -30,17 +30,23 @@ run: setup
 	$(BIN)/snakemake --cores $(CORES) --workflow-profile workflow/profiles/default
 
 ## lint + the test suite (what CI runs)
-test: setup lint
+test: setup lint browser
 	$(BIN)/pytest -q
 
 lint: setup
 	$(BIN)/ruff check cystomap scripts tests
 	$(BIN)/snakemake --lint --cores 1
 
+## Debian's chromium, for the study report's browser test (`make test` only, not `make run`)
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	   echo "installing system packages: chromium"; \
+	   $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
+
 ## full-size benchmarks; writes tables under results/bench/
 bench: setup
 	$(BIN)/python -m cystomap.bench --out results/bench
-	$(BIN)/python -m cystomap.bench_sfm --out results/bench
+	$(BIN)/python -m cystomap.bench.sfm --out results/bench
 
 clean:
 	rm -rf results logs benchmarks .snakemake

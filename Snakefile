@@ -12,6 +12,10 @@ min_version("9.0")
 configfile: Path(workflow.basedir) / "config.yaml"
 
 
+# `snakemake --report report.html` (or .zip): atlases, change maps and tables, with captions.
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/phantom.smk"
 include: "workflow/rules/frames.smk"
@@ -21,6 +25,7 @@ include: "workflow/rules/mesh.smk"
 include: "workflow/rules/atlas.smk"
 include: "workflow/rules/compare.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

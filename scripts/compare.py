@@ -15,4 +15,5 @@ with log_to(sm.log[0]):
         SessionPaths(*b),
         Path(sm.output.compare),
         from_mapping(CompareConfig, sm.params.compare, "compare"),
+        landmarks=sm.params.landmarks,
     )

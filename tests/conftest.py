@@ -1,4 +1,5 @@
-"""Shared fixtures: the repository root and a Snakemake runner for workflow tests."""
+"""Shared fixtures: the repository root, a Snakemake runner for workflow tests, and the phantom
+study run once at test size for every test that needs real stage outputs."""
 
 from __future__ import annotations
 
@@ -66,3 +67,23 @@ def workflow_factory(tmp_path: Path):
         return Workflow(tmp_path, config)
 
     return make
+
+
+# The default study (the built-in phantom) at test size: 640x360 frames, a 1024x512 atlas.
+HALF_CAMERA = {"width": 640, "height": 360, "fx": 469.932, "fy": 469.932, "cx": 319.5, "cy": 179.5,
+               "k1": -0.12, "k2": 0.02}
+
+
+def phantom_config(**phantom) -> dict:
+    return {"cameras": {"phantom_half": HALF_CAMERA},
+            "phantom": {"enabled": True, "camera": "phantom_half", **phantom},
+            "atlas": {"width": 1024, "height": 512}}
+
+
+@pytest.fixture(scope="session")
+def phantom_study(tmp_path_factory) -> Workflow:
+    """The whole phantom DAG run once (about 3-4 min on 2 cores), shared by the workflow and
+    report tests. Tests must leave its config as phantom_config() and its outputs unchanged."""
+    wf = Workflow(tmp_path_factory.mktemp("phantom_study"), phantom_config())
+    wf.run()
+    return wf

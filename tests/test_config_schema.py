@@ -14,6 +14,7 @@ from cystomap.frames import FramesConfig
 from cystomap.mesh import MeshConfig
 from cystomap.phantom import PhantomConfig
 from cystomap.preprocess import PreprocessConfig
+from cystomap.report import ReportConfig
 from cystomap.sessions import PHANTOM_STUDY_KEYS
 from cystomap.sfm import SfmConfig
 
@@ -26,6 +27,7 @@ SECTIONS = {
     "mesh": MeshConfig,
     "atlas": AtlasConfig,
     "compare": CompareConfig,
+    "report": ReportConfig,
 }
 SCHEMA_WORDS = {
     "type", "default", "description", "items", "minItems", "maxItems", "minimum", "maximum",

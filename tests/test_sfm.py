@@ -21,7 +21,7 @@ from cystomap.sfm.scale import estimate_scale
 # Small phantom session: the default path at 640x360 with the coarse ("low texture") wall,
 # all 124 frames, reconstructed at that size. (With the default fine texture, a 640x360
 # render changes the wall's look from frame to frame - texture level of detail - and SfM on
-# it is poor, while the 1280x720 render downsampled to 640 is fine; see bench_sfm.)
+# it is poor, while the 1280x720 render downsampled to 640 is fine; see cystomap.bench.sfm.)
 SMALL_SCALE = 0.5
 FAST = {"max_image_size": 0, "num_threads": 2}
 

@@ -73,7 +73,7 @@ def test_changing_a_stage_parameter_reruns_only_that_stage_and_after(finished):
     assert finished.planned_jobs(*TARGETS) == {"frames": 2, "preprocess": 2}
     finished.write_config(study_config())
     assert finished.planned_jobs(*TARGETS) == {}
-    assert finished.planned_jobs() == {"sfm": 2, "mesh": 2, "atlas": 2, "compare": 1, "all": 1}
+    assert finished.planned_jobs() == {"sfm": 2, "mesh": 2, "atlas": 2, "compare": 1, "report": 1, "all": 1}
 
 
 def test_snakemake_lint_is_clean(finished):
@@ -95,6 +95,12 @@ def test_dag_lists_every_stage(finished):
         (study_config(frames={"max_frame": 3}), "Additional properties are not allowed ('max_frame'"),
         (study_config(sheet="missing.tsv"), "missing.tsv: file not found"),
         ({**study_config(), "cameras": {"scope": {"width": 320, "height": 180}}}, "cameras"),
+        (study_config(comparisons=[{"subject": "p01", "a": "a", "b": "zz"}]),
+         "comparisons[0] (p01: a vs zz): b = 'zz' is not a session of subject 'p01'"),
+        (study_config(landmarks=[{"subject": "p01", "session": "q", "name": "scar", "col": 3, "row": 4}]),
+         "config landmarks[0] (scar): p01/q is not a session"),
+        (study_config(landmarks=[{"subject": "p01", "session": "a", "name": "scar", "col": 3}]),
+         "landmarks"),
     ],
 )
 def test_bad_config_fails_before_any_job(tmp_path, workflow_factory, config, message):
@@ -104,6 +110,16 @@ def test_bad_config_fails_before_any_job(tmp_path, workflow_factory, config, mes
     assert proc.returncode != 0
     assert message in proc.stdout + proc.stderr
     assert not (tmp_path / "results").exists()
+
+
+def test_extra_comparisons_from_the_config_are_planned(tmp_path, workflow_factory):
+    write_study(tmp_path, sessions=(("p01", "a", 0), ("p01", "b", 1), ("p01", "c", 2)))
+    extra = [{"subject": "p01", "a": "a", "b": "c"}, {"subject": "p01", "a": "a", "b": "b"}]
+    proc = workflow_factory(study_config(comparisons=extra)).run("-n", check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    planned = {f"{a}_vs_{b}" for a in "abc" for b in "abc" if f"compare/{a}_vs_{b}" in out}
+    assert planned == {"a_vs_b", "b_vs_c", "a_vs_c"}  # consecutive pairs + the extra one, once
 
 
 def test_bad_video_fails_with_its_name_and_leaves_other_sessions_alone(tmp_path, workflow_factory):

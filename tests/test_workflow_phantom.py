@@ -7,19 +7,12 @@ import json
 import pandas as pd
 import pytest
 import yaml
+from conftest import phantom_config
 
 pytestmark = pytest.mark.workflow
 
-HALF_CAMERA = {"width": 640, "height": 360, "fx": 469.932, "fy": 469.932, "cx": 319.5, "cy": 179.5,
-               "k1": -0.12, "k2": 0.02}
 ALL_JOBS = {"phantom_session": 2, "frames": 2, "preprocess": 2, "sfm": 2, "mesh": 2, "atlas": 2, "compare": 1,
-            "evaluate": 1, "all": 1}
-
-
-def phantom_config(**phantom) -> dict:
-    return {"cameras": {"phantom_half": HALF_CAMERA},
-            "phantom": {"enabled": True, "camera": "phantom_half", **phantom},
-            "atlas": {"width": 1024, "height": 512}}
+            "evaluate": 1, "report": 1, "all": 1}
 
 
 def test_default_config_plans_the_whole_study(repo, workflow_factory):
@@ -27,9 +20,8 @@ def test_default_config_plans_the_whole_study(repo, workflow_factory):
     assert wf.planned_jobs() == ALL_JOBS
 
 
-def test_phantom_study_runs_end_to_end(tmp_path, workflow_factory):
-    wf = workflow_factory(phantom_config())
-    wf.run()
+def test_phantom_study_runs_end_to_end(phantom_study):
+    wf, tmp_path = phantom_study, phantom_study.workdir
     for session in ("s1", "s2"):
         truth = json.loads((tmp_path / f"results/phantom/phantom/{session}/truth/truth.json").read_text())
         assert truth["n_frames"] == 124
@@ -50,6 +42,10 @@ def test_phantom_study_runs_end_to_end(tmp_path, workflow_factory):
     compare = tmp_path / "results/phantom/compare/s1_vs_s2"
     assert json.loads((compare / "registration.json").read_text())["registered"]
     assert list(pd.read_csv(compare / "changes.csv").columns[:4]) == ["id", "x", "y", "z"]
+    assert (tmp_path / "results/phantom/report.html").stat().st_size > 0
     assert wf.planned_jobs() == {}
-    wf.write_config(phantom_config(seed=8))
-    assert wf.planned_jobs() == ALL_JOBS
+    try:
+        wf.write_config(phantom_config(seed=8))
+        assert wf.planned_jobs() == ALL_JOBS
+    finally:
+        wf.write_config(phantom_config())

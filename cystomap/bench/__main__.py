@@ -10,7 +10,7 @@ from pathlib import Path
 from cystomap.bench.common import write_table
 
 log = logging.getLogger("cystomap.bench")
-SUITES = ("phantom", "pipeline")
+SUITES = ("phantom", "pipeline", "compare")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -19,6 +19,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", choices=SUITES, action="append", help="run only these suites")
     parser.add_argument("--repeats", type=int, default=3, help="runs per timed step (median reported)")
     parser.add_argument("--work", type=Path, help="scratch directory (default: a temporary one)")
+    parser.add_argument("--seeds", default="7,8,9", help="phantom seeds scored by the pipeline suite")
+    parser.add_argument("--pairs", default="default,deformed,no_change", help="session pairs of the compare suite")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     suites = args.only or list(SUITES)
@@ -32,11 +34,19 @@ def main(argv: list[str] | None = None) -> None:
         if "pipeline" in suites:
             from cystomap.bench.pipeline import bench_pipeline
 
-            times, scores = bench_pipeline(work, args.repeats)
+            seeds = [int(s) for s in args.seeds.split(",")]
+            times, scores = bench_pipeline(work, args.repeats, seeds)
             df = write_table(times, args.out, "pipeline_times", "Stage times, one full-size phantom session")
             log.info("pipeline times:\n%s", df.to_string(index=False))
-            df = write_table(scores, args.out, "pipeline_scores", "Scores against the phantom's ground truth")
+            df = write_table(scores, args.out, "pipeline_scores",
+                             "Scores against the phantom's ground truth, per seed (session 1, 1280x720)")
             log.info("pipeline scores:\n%s", df.to_string(index=False))
+        if "compare" in suites:
+            from cystomap.bench.compare import bench_compare
+
+            rows = bench_compare(work, args.repeats, args.pairs.split(","))
+            df = write_table(rows, args.out, "compare", "Compare stage on phantom session pairs (1280x720)")
+            log.info("compare:\n%s", df.to_string(index=False))
 
 
 if __name__ == "__main__":

@@ -32,7 +32,8 @@ def score_surface(truth: Truth, mesh_ply: Path, sim3: Sim3, cfg: EvalConfig) -> 
     leaving out the part that bridges an opening of the true wall (the aperture into the
     urethra, where a closed mesh must differ from the open truth; ``Truth.in_opening``), which
     is scored on its own (``closure_*``); completeness: share of points sampled on the seen
-    part of the true wall (``seen.png`` about the truth barycentre) lying within ``cfg.completeness_threshold_mm`` of the mesh.
+    part of the true wall (``seen.png`` about the truth barycentre) lying within
+    ``cfg.completeness_threshold_mm`` of the mesh.
     """
     rng = np.random.default_rng(cfg.seed)
     recon = read_mesh(mesh_ply).transformed(sim3)

@@ -7,7 +7,14 @@ rule atlas:
         preprocessed="results/{subject}/{session}/preprocessed",
         mesh="results/{subject}/{session}/mesh/surface.ply",
     output:
-        atlas=directory("results/{subject}/{session}/atlas"),
+        atlas=report(
+            directory("results/{subject}/{session}/atlas"),
+            patterns=[r"{figure,(atlas|coverage)}.png"],
+            caption="../report/atlas.rst",
+            category="Atlases",
+            subcategory="{subject}",
+            labels={"session": "{session}", "figure": "{figure}"},
+        ),
     params:
         atlas=config["atlas"],
     log:

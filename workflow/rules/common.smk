@@ -95,10 +95,40 @@ def evaluation_inputs(wildcards):
 
 
 def comparison_pairs(subject):
-    """Consecutive sessions of a subject, ordered by date: [(a, b), ...]."""
+    """Consecutive sessions of a subject, ordered by date, then the config's `comparisons:`
+    for that subject: [(a, b), ...] without repeats."""
     rows = SESSIONS[SESSIONS["subject"] == subject].reset_index(drop=True).sort_values(["date", "session"])
     names = list(rows["session"])
-    return list(zip(names[:-1], names[1:]))
+    pairs = list(zip(names[:-1], names[1:]))
+    for item in config["comparisons"]:
+        if item["subject"] == subject and (item["a"], item["b"]) not in pairs:
+            pairs.append((item["a"], item["b"]))
+    return pairs
+
+
+def _check_comparisons():
+    """Each extra comparison names two different existing sessions of its subject."""
+    for i, item in enumerate(config["comparisons"]):
+        where = f"config comparisons[{i}] ({item['subject']}: {item['a']} vs {item['b']})"
+        for key in ("a", "b"):
+            if (item["subject"], item[key]) not in SESSIONS.index:
+                raise ValueError(f"{where}: {key} = {item[key]!r} is not a session of subject "
+                                 f"{item['subject']!r} (sessions sheet or phantom study)")
+        if item["a"] == item["b"]:
+            raise ValueError(f"{where}: a and b are the same session")
+    for i, item in enumerate(config["landmarks"]):
+        if (item["subject"], item["session"]) not in SESSIONS.index:
+            raise ValueError(f"config landmarks[{i}] ({item['name']}): {item['subject']}/{item['session']} "
+                             "is not a session (sessions sheet or phantom study)")
+
+
+_check_comparisons()
+
+
+def landmarks_of(subject, session):
+    """The config's landmarks marked in one session: [{name, col, row} or {name, x, y, z}]."""
+    return [{k: v for k, v in item.items() if k not in ("subject", "session")}
+            for item in config["landmarks"] if item["subject"] == subject and item["session"] == session]
 
 
 def comparison_inputs(wildcards):
@@ -110,6 +140,26 @@ def comparison_inputs(wildcards):
     return inputs
 
 
+def report_sessions(subject):
+    """The subject's sessions in date order, as [{"name", "date"}, ...] (the report's order)."""
+    rows = SESSIONS[SESSIONS["subject"] == subject].reset_index(drop=True).sort_values(["date", "session"])
+    return [{"name": str(r.session), "date": str(r.date)} for r in rows.itertuples()]
+
+
+def report_inputs(wildcards):
+    """Per session (in report_sessions order) its frames, sfm, mesh and atlas outputs; per
+    comparison (comparison_pairs order) its compare directory; the phantom's evaluation."""
+    root = f"results/{wildcards.subject}"
+    names = [s["name"] for s in report_sessions(wildcards.subject)]
+    inputs = {key: [f"{root}/{s}/{path}" for s in names]
+              for key, path in (("frames", "frames"), ("sfm", "sfm"), ("mesh", "mesh/surface.ply"),
+                                ("atlas", "atlas"))}
+    inputs["compare"] = [f"{root}/compare/{a}_vs_{b}" for a, b in comparison_pairs(wildcards.subject)]
+    if wildcards.subject in PHANTOM_SUBJECTS:
+        inputs["evaluation"] = [f"{root}/evaluation.json"]
+    return inputs
+
+
 def all_targets():
     targets = []
     for subject, session in SESSIONS.index:
@@ -117,4 +167,5 @@ def all_targets():
     for subject in SESSIONS["subject"].unique():
         targets += [f"results/{subject}/compare/{a}_vs_{b}" for a, b in comparison_pairs(subject)]
     targets += [f"results/{subject}/evaluation.json" for subject in PHANTOM_SUBJECTS]
+    targets += [f"results/{subject}/report.html" for subject in SESSIONS["subject"].unique()]
     return targets

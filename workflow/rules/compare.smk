@@ -5,9 +5,17 @@ rule compare:
     input:
         unpack(comparison_inputs),
     output:
-        compare=directory("results/{subject}/compare/{a}_vs_{b}"),
+        compare=report(
+            directory("results/{subject}/compare/{a}_vs_{b}"),
+            patterns=[r"{file,(difference|changes|side_by_side)\.png|changes\.csv}"],
+            caption="../report/compare.rst",
+            category="Changes",
+            subcategory="{subject}",
+            labels={"comparison": "{a} vs {b}", "file": "{file}"},
+        ),
     params:
         compare=config["compare"],
+        landmarks=lambda w: landmarks_of(w.subject, w.a),
     log:
         "logs/{subject}/compare/{a}_vs_{b}.log",
     benchmark:

@@ -1,6 +1,6 @@
 """Benchmark of the SfM stage against pycolmap's defaults on phantom sessions.
 
-    python -m cystomap.bench_sfm --out results/bench
+    python -m cystomap.bench.sfm --out results/bench
 
 For each phantom session (generated once into ``--work``; every video frame is decoded and
 preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap.sfm.run_sfm`
@@ -28,7 +28,7 @@ from cystomap.camera import Camera
 from cystomap.outputs import atomic_file, write_json
 from cystomap.video import iter_frames
 
-log = logging.getLogger("cystomap.bench_sfm")
+log = logging.getLogger("cystomap.bench.sfm")
 
 # The phantom's camera of config.yaml (cameras.phantom_76).
 CAMERA = Camera(1280, 720, 939.864, 939.864, 639.5, 359.5, (-0.12, 0.02, 0.0, 0.0, 0.0),
@@ -217,7 +217,7 @@ def write_tables(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) ->
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cystomap.bench_sfm", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m cystomap.bench.sfm", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("results/bench"), help="where the tables go")
     p.add_argument("--work", type=Path, default=Path("/tmp/cystomap-bench-sfm"),

@@ -1,0 +1,35 @@
+"""Settings of the study report (rule ``report``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Settings of the ``report`` rule."""
+
+    # Images (atlases, coverage, difference and change maps) are embedded at most this wide
+    # (pixels; never upscaled): the 2048-pixel atlas at half size keeps the report small.
+    image_width: int = 1024
+    # JPEG quality of the embedded images (an image is embedded as PNG instead when that is
+    # smaller, e.g. the flat colours of the coverage map).
+    jpeg_quality: int = 85
+    # Vertices of each 3-D view (at most): the surface mesh is subdivided (4x the vertices
+    # per step, more colour detail) while it stays within this, or simplified to it; colours
+    # are sampled from the atlas at each vertex. Below 65536, face indices take 16 bits.
+    model_vertices: int = 65000
+    # The changes table lists at most this many regions (the highest scores; the rest are
+    # counted).
+    max_table_rows: int = 100
+
+    def __post_init__(self) -> None:
+        checks = {
+            "64 <= image_width <= 8192": 64 <= self.image_width <= 8192,
+            "1 <= jpeg_quality <= 100": 1 <= self.jpeg_quality <= 100,
+            "500 <= model_vertices <= 1000000": 500 <= self.model_vertices <= 1_000_000,
+            "max_table_rows >= 1": self.max_table_rows >= 1,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"invalid report settings: need {', '.join(bad)}")

@@ -1,0 +1,229 @@
+"""What the report shows, read from the stage outputs of one subject.
+
+Every figure comes from a file a stage wrote (``frames.json``, ``sfm/quality.json``,
+``mesh.json``, ``atlas.json``, ``registration.json``, ``compare.json``, ``changes.csv``). A
+missing or unreadable JSON file leaves its figures empty ("—" in the report) with a warning,
+so one damaged summary does not hide the rest; missing images are an error.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cystomap.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SessionInputs:
+    """Where one session's outputs are (the workflow's standard layout)."""
+
+    name: str
+    date: str  # ISO date, or "" when unknown
+    frames: Path  # frames/ (frames.json)
+    sfm: Path  # sfm/ (quality.json)
+    mesh: Path  # mesh/surface.ply (mesh.json next to it)
+    atlas: Path  # atlas/ (atlas.png, coverage.png, atlas.json)
+
+    @classmethod
+    def from_root(cls, name: str, date: str, root: Path) -> SessionInputs:
+        root = Path(root)
+        return cls(name, date, root / "frames", root / "sfm", root / "mesh" / "surface.ply", root / "atlas")
+
+
+@dataclass(frozen=True)
+class ComparisonInputs:
+    """One comparison: session names (A earlier, B later) and the compare/ directory."""
+
+    a: str
+    b: str
+    compare: Path
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    """A JSON object, or {} (with a warning) when the file is missing or unreadable."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        log.warning("report: %s not found; its figures are left empty", path)
+        return {}
+    except (OSError, ValueError) as exc:
+        log.warning("report: cannot read %s (%s); its figures are left empty", path, exc)
+        return {}
+    if not isinstance(data, dict):
+        log.warning("report: %s is not a JSON object; its figures are left empty", path)
+        return {}
+    return data
+
+
+def _num(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value)
+
+
+@dataclass
+class SessionSummary:
+    """The quality figures of one session."""
+
+    name: str
+    date: str
+    frames_decoded: int | None = None
+    frames_kept: int | None = None
+    frames_in: int | None = None  # frames given to SfM
+    registered: int | None = None
+    reprojection_px: float | None = None
+    points: int | None = None
+    coverage_percent: float | None = None
+    views_median: float | None = None
+    contributing: int | None = None
+    watertight: bool | None = None
+    metric: bool = False
+    units: str = "model units"
+    scale_source: str = "unknown"
+    inputs: SessionInputs | None = None
+
+    @property
+    def registered_share(self) -> float | None:
+        if self.registered is None or not self.frames_in:
+            return None
+        return self.registered / self.frames_in
+
+
+def scale_text(scale: dict[str, Any]) -> str:
+    """Where the metric scale came from, in words."""
+    source = scale.get("source")
+    factor = _num(scale.get("factor"))
+    if source == "extent_mm":
+        extent = _num(scale.get("model_extent"))
+        size = f", {extent * factor:.0f} mm" if extent and factor else ""
+        return f"known largest extent of the wall{size} (extent_mm)"
+    if source == "volume_ml":
+        volume = _num(scale.get("model_volume"))
+        size = f", {volume * factor ** 3 / 1000:.0f} ml" if volume and factor else ""
+        return f"known bladder volume{size} (volume_ml)"
+    if source == "none":
+        return "none: no extent_mm or volume_ml, lengths in arbitrary model units"
+    return "unknown"
+
+
+def load_session(inputs: SessionInputs) -> SessionSummary:
+    s = SessionSummary(inputs.name, inputs.date, inputs=inputs)
+    frames = read_json(Path(inputs.frames) / "frames.json")
+    quality = read_json(Path(inputs.sfm) / "quality.json")
+    mesh = read_json(Path(inputs.mesh).with_name("mesh.json"))
+    atlas = read_json(Path(inputs.atlas) / "atlas.json")
+    s.frames_decoded = _int(frames.get("frames_decoded"))
+    s.frames_kept = _int(frames.get("frames_kept"))
+    s.frames_in = _int(quality.get("frames_in"))
+    s.registered = _int(quality.get("registered"))
+    s.reprojection_px = _num(quality.get("mean_reprojection_error_px"))
+    s.points = _int(quality.get("points"))
+    scale = quality.get("scale") if isinstance(quality.get("scale"), dict) else {}
+    s.metric = bool(quality.get("metric", scale.get("metric", False)))
+    s.units = "mm" if s.metric else "model units"
+    s.scale_source = scale_text(scale) if scale else "unknown"
+    s.coverage_percent = _num(atlas.get("coverage_percent"))
+    cov = atlas.get("coverage") if isinstance(atlas.get("coverage"), dict) else {}
+    s.views_median = _num(cov.get("views_median"))
+    fr = atlas.get("frames") if isinstance(atlas.get("frames"), dict) else {}
+    s.contributing = _int(fr.get("contributing"))
+    if isinstance(mesh.get("watertight"), bool):
+        s.watertight = mesh["watertight"]
+    return s
+
+
+def _int(value: Any) -> int | None:
+    v = _num(value)
+    return None if v is None else int(v)
+
+
+@dataclass
+class ComparisonSummary:
+    """Registration and changes of one pair of sessions."""
+
+    a: str
+    b: str
+    directory: Path
+    registered: bool = False
+    reason: str = ""
+    matches: int | None = None
+    inliers: int | None = None
+    inlier_ratio: float | None = None
+    scale: float | None = None
+    residual_mm: float | None = None  # median inlier residual after the spline
+    compared_share: float | None = None
+    changes: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def key(self) -> str:
+        return f"{self.a}_vs_{self.b}"
+
+    def file(self, name: str) -> Path | None:
+        p = self.directory / name
+        return p if p.is_file() else None
+
+
+def load_comparison(inputs: ComparisonInputs) -> ComparisonSummary:
+    d = Path(inputs.compare)
+    if not d.is_dir():
+        raise InputError(f"comparison {inputs.a} vs {inputs.b}: {d} not found")
+    c = ComparisonSummary(inputs.a, inputs.b, d)
+    reg = read_json(d / "registration.json")
+    summary = read_json(d / "compare.json")
+    c.registered = bool(reg.get("registered", summary.get("registered", False)))
+    c.reason = str(reg.get("reason") or summary.get("reason") or "")
+    if not c.registered and not c.reason:
+        c.reason = "registration.json is missing or says nothing" if not reg else "no reason given"
+    c.matches = _int(reg.get("matches"))
+    c.inliers = _int(reg.get("inliers"))
+    c.inlier_ratio = _num(reg.get("inlier_ratio"))
+    tf = reg.get("transform_a_to_b") if isinstance(reg.get("transform_a_to_b"), dict) else {}
+    c.scale = _num(tf.get("scale"))
+    c.residual_mm = _find_residual(reg)
+    c.compared_share = _find_compared(summary)
+    c.changes = read_changes(d / "changes.csv")
+    return c
+
+
+def _find_residual(reg: dict[str, Any]) -> float | None:
+    """Median residual (model units) of the inliers after the spline, when recorded."""
+    res = reg.get("residual_mm")
+    if isinstance(res, dict):
+        for stage in ("after_spline", "before_spline"):
+            block = res.get(stage)
+            if isinstance(block, dict) and _num(block.get("median")) is not None:
+                return _num(block.get("median"))
+    return None
+
+
+def _find_compared(summary: dict[str, Any]) -> float | None:
+    diff = summary.get("difference")
+    if isinstance(diff, dict):
+        return _num(diff.get("joint_share_of_b_wall"))
+    return None
+
+
+def read_changes(path: Path) -> list[dict[str, Any]]:
+    """Rows of changes.csv with numbers parsed ([] when missing or header only)."""
+    if not Path(path).is_file():
+        log.warning("report: %s not found; no changes listed", path)
+        return []
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    out = []
+    for r in rows:
+        parsed: dict[str, Any] = {}
+        for k, v in r.items():
+            try:
+                parsed[k] = float(v) if v not in ("", None) else None
+            except ValueError:
+                parsed[k] = v
+        out.append(parsed)
+    return out

@@ -1,0 +1,275 @@
+"""The study report (cystomap.report) on small synthetic stage outputs: fast, no browser."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cystomap.atlas.projection import Projection
+from cystomap.compare.changes import CHANGE_COLUMNS
+from cystomap.errors import InputError
+from cystomap.images import imwrite_rgb
+from cystomap.outputs import write_json
+from cystomap.report import ComparisonInputs, ReportConfig, SessionInputs, build_report
+from cystomap.report.model3d import Geometry, bilinear_wrap, load_geometry, vertex_colours
+
+ATLAS_W, ATLAS_H = 256, 128
+RADIUS = 40.0
+SMALL = ReportConfig(image_width=200, model_vertices=3000)
+
+
+def _atlas_image(seed: int) -> np.ndarray:
+    """RGBA: a smooth colourful pattern with vessels-like lines, a block never seen."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:ATLAS_H, 0:ATLAS_W].astype(np.float64)
+    r = 170 + 50 * np.sin(xx / 17 + seed)
+    g = 110 + 40 * np.cos(yy / 11)
+    b = 100 + 30 * np.sin((xx + yy) / 23)
+    rgb = np.dstack([r, g, b]) + rng.normal(0, 6, (ATLAS_H, ATLAS_W, 3))
+    rgba = np.dstack([np.clip(rgb, 0, 255), np.full((ATLAS_H, ATLAS_W), 255.0)]).astype(np.uint8)
+    rgba[100:, 200:] = 0
+    return rgba
+
+
+def write_session(root: Path, name: str, date: str, seed: int, metric: bool = True) -> SessionInputs:
+    """The outputs of one session as the stages write them (frames, sfm, mesh, atlas)."""
+    import open3d as o3d
+
+    d = root / f"session{seed}"
+    for sub in ("frames", "sfm", "mesh", "atlas"):
+        (d / sub).mkdir(parents=True, exist_ok=True)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=16)
+    o3d.io.write_triangle_mesh(str(d / "mesh/surface.ply"), sphere)
+    write_json(d / "mesh/mesh.json", {"watertight": True})
+    imwrite_rgb(d / "atlas/atlas.png", _atlas_image(seed))
+    views = np.tile(np.linspace(0, 25, ATLAS_W).astype(np.uint8), (ATLAS_H, 1))
+    imwrite_rgb(d / "atlas/coverage.png", np.dstack([views * 8, views * 4, 255 - views * 8]))
+    proj = Projection("equirectangular", ATLAS_W, ATLAS_H)
+    write_json(d / "atlas/atlas.json", {**proj.to_json(), "coverage_percent": 90.0 + seed,
+                                        "coverage": {"views_median": 7.0, "coverage_png": {"max_views": 20}},
+                                        "frames": {"registered": 45, "contributing": 44}})
+    write_json(d / "frames/frames.json", {"frames_decoded": 60, "frames_kept": 50})
+    scale = ({"factor": 2.0, "source": "extent_mm", "metric": True, "model_extent": 60.0} if metric
+             else {"factor": 1.0, "source": "none", "metric": False})
+    write_json(d / "sfm/quality.json", {"frames_in": 50, "registered": 45 - seed, "mean_reprojection_error_px": 0.61,
+                                        "points": 1234, "metric": metric, "scale": scale})
+    return SessionInputs.from_root(name, date, d)
+
+
+def write_comparison(root: Path, a: SessionInputs, b: SessionInputs, registered: bool, n_changes: int = 2,
+                     glb: bool = True) -> ComparisonInputs:
+    """The outputs of the compare stage for A → B (registered or not)."""
+    from cystomap.atlas.model import uv_unwrap, write_glb
+    from cystomap.mesh import read_mesh
+
+    d = root / "compare" / f"{a.atlas.parent.name}_vs_{b.atlas.parent.name}"
+    d.mkdir(parents=True)
+    reg = {"registered": registered, "reason": "" if registered else "only 4 inlier matches (need 25)",
+           "matches": 60, "inliers": 48 if registered else 4, "inlier_ratio": 0.8 if registered else 0.07}
+    if registered:
+        reg["transform_a_to_b"] = {"scale": 1.01}
+        reg["residual_mm"] = {"after_spline": {"median": 0.5}}
+    write_json(d / "registration.json", reg)
+    write_json(d / "compare.json", {"registered": registered, "changes": n_changes if registered else 0})
+    atlas_b = _atlas_image(2)
+    imwrite_rgb(d / "side_by_side.png", np.hstack([_atlas_image(1)[..., :3], atlas_b[..., :3]]))
+    rows = []
+    if registered:
+        imwrite_rgb(d / "difference.png", np.full((ATLAS_H, ATLAS_W, 3), 128, np.uint8))
+        changes = atlas_b[..., :3].copy()
+        changes[20:40, 60:80] = (255, 40, 200)
+        imwrite_rgb(d / "changes.png", changes)
+        if glb:
+            import cv2
+
+            verts, faces = read_mesh(b.mesh)
+            ok, png = cv2.imencode(".png", changes[..., ::-1])
+            assert ok
+            write_glb(d / "changes.glb", uv_unwrap(verts, faces, Projection("equirectangular", ATLAS_W, ATLAS_H)),
+                      png.tobytes())
+        for i in range(n_changes):
+            az = np.radians(-30 + 40 * i)
+            rows.append({"id": i + 1, "x": RADIUS * np.cos(az), "y": RADIUS * np.sin(az), "z": 5.0,
+                         "azimuth_deg": np.degrees(az), "elevation_deg": 7.0, "area_mm2": 80.0 - i,
+                         "diameter_mm": 10.1 - i, "mean_difference": 30.0, "score": 3.0 - i / 10})
+    with open(d / "changes.csv", "w") as fh:
+        fh.write(",".join(CHANGE_COLUMNS) + "\n")
+        for r in rows:
+            fh.write(",".join(str(r.get(c, "")) for c in CHANGE_COLUMNS) + "\n")
+    return ComparisonInputs(a.name, b.name, d)
+
+
+def make_study(root: Path, names: tuple[str, ...] = ("s1", "s2", "s3"), registered: tuple[bool, ...] = (),
+               metric: bool = True) -> tuple[list[SessionInputs], list[ComparisonInputs]]:
+    sessions = [write_session(root, n, f"2026-0{i + 1}-1{i}", i, metric) for i, n in enumerate(names)]
+    registered = registered or (True,) * (len(names) - 1)
+    comparisons = [write_comparison(root, a, b, reg) for a, b, reg in zip(sessions[:-1], sessions[1:], registered,
+                                                                             strict=True)]
+    return sessions, comparisons
+
+
+def view_data(text: str) -> dict:
+    m = re.search(r"<script type='application/json' id='cm-data'>(.*?)</script>", text, re.S)
+    assert m, "the 3-D data block is missing"
+    return json.loads(m.group(1))
+
+
+@pytest.fixture(scope="module")
+def three_sessions(tmp_path_factory):
+    root = tmp_path_factory.mktemp("study3")
+    sessions, comparisons = make_study(root, registered=(True, False))
+    out = build_report("p<01>", sessions, comparisons, root / "report.html", SMALL)
+    return out, out.read_text()
+
+
+def test_report_is_self_contained(three_sessions):
+    out, text = three_sessions
+    assert out.name == "report.html" and not list(out.parent.glob(".report*"))  # atomic, no leftovers
+    assert not re.search(r"<(script|img|link|iframe)[^>]*\s(src|href)=['\"]?(https?:)?//", text)
+    srcs = re.findall(r"<img [^>]*src='([^']*)'", text)
+    assert len(srcs) == 3 * 2 + 2 + 1  # atlas + coverage per session; difference + changes; side by side
+    assert all(s.startswith(("data:image/jpeg;base64,", "data:image/png;base64,")) for s in srcs)
+    assert text.count("<script>") == 3  # image zoom, plotly.js once, the 3-D viewer
+    import plotly
+
+    assert text.count(plotly.offline.get_plotlyjs()[:200]) == 1
+
+
+def test_three_sessions_have_a_timeline_and_every_section(three_sessions):
+    _, text = three_sessions
+    assert "id='timeline'" in text and "<svg" in text
+    for name in ("s1", "s2", "s3"):
+        assert f"id='session-{name}'" in text
+    assert "id='compare-s1-s2'" in text and "id='compare-s2-s3'" in text
+    timeline = text[text.index("id='timeline'"):text.index("</svg>")]
+    assert "2 changes" in timeline and "not registered" in timeline and "32 days" in timeline
+    assert "known largest extent of the wall, 120 mm (extent_mm)" in text
+    assert "45 of 50 (90 %)" in text  # registered frames of s1
+    assert "50 of 60 (83 %)" in text  # frames kept
+
+
+def test_timeline_shows_comparisons_that_skip_sessions(tmp_path):
+    sessions, comparisons = make_study(tmp_path, names=("s1", "s2", "s3", "s4"))
+    comparisons.append(write_comparison(tmp_path / "extra", sessions[0], sessions[3], True, n_changes=3))
+    imwrite_rgb(comparisons[-1].compare / "landmarks.png", np.zeros((ATLAS_H, ATLAS_W, 3), np.uint8))
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    timeline = text[text.index("id='timeline'"):text.index("</svg>")]
+    assert timeline.count("<path") == 4 and "3 changes" in timeline and "93 days" in timeline
+    assert "id='compare-s1-s4'" in text and "Landmarks marked in s1, found back on s4" in text
+
+
+def test_failed_registration_says_so_and_shows_both_atlases(three_sessions):
+    _, text = three_sessions
+    section = text[text.index("id='compare-s2-s3'"):]
+    section = section[:section.index("</section>")]
+    assert "not registered</span>: only 4 inlier matches (need 25)" in section
+    assert "could not be co-registered" in section
+    assert "Atlases of s2 (left, earlier) and s3 (right, later)" in section
+    assert "Difference map" not in section and "class='cm-3d'" not in section
+    assert "<table class='data changes'>" not in section
+
+
+def test_changes_are_tabled_and_marked_in_3d(three_sessions):
+    _, text = three_sessions
+    section = text[text.index("id='compare-s1-s2'"):]
+    section = section[:section.index("</section>")]
+    assert "Difference map" in section and "Changes outlined" in section
+    table = section[section.index("<table class='data changes'>"):section.index("</table>")]
+    assert table.count("<tr>") == 3  # header + 2 changes
+    assert "<th>diameter (mm)</th>" in table and "<td>10.1</td>" in table
+    data = view_data(text)
+    assert set(data["views"]) == {"s0", "s1", "s2", "c0"}
+    changes = data["views"]["c0"]
+    assert changes["geometry"] == data["views"]["s1"]["geometry"]  # B's mesh, stored once
+    assert [m["label"] for m in changes["markers"]] == ["1", "2"]
+    assert len(data["geometries"]) == 3
+
+
+def test_names_are_escaped(tmp_path):
+    sessions, comparisons = make_study(tmp_path, names=("a<b>", "c&d"), registered=(False,))
+    text = build_report("<script>alert(1)</script>&", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    assert "<script>alert(1)" not in text and "&lt;script&gt;alert(1)&lt;/script&gt;&amp;" in text
+    assert "a<b>" not in text and "a&lt;b&gt;" in text and "c&amp;d" in text
+    assert "id='timeline'" not in text  # two sessions: no timeline
+    data = view_data(text)
+    assert data["geometries"]["g0"]["session"] == "a<b>"  # JSON, never parsed as HTML
+
+
+def test_model_units_without_a_metric_scale(tmp_path):
+    sessions, comparisons = make_study(tmp_path, names=("a", "b"), metric=False)
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    assert "none: no extent_mm or volume_ml, lengths in arbitrary model units" in text
+    assert "<th>diameter (units)</th>" in text
+    assert view_data(text)["geometries"]["g0"]["units"] == "model units"
+
+
+def test_changes_view_falls_back_to_changes_png(tmp_path):
+    a, b = (write_session(tmp_path, n, "2026-01-01", i) for i, n in enumerate(("a", "b")))
+    c = write_comparison(tmp_path, a, b, registered=True, glb=False)
+    data = view_data(build_report("p", [a, b], [c], tmp_path / "r.html", SMALL).read_text())
+    assert "c0" in data["views"]
+
+
+def test_single_session_without_3d_data_still_reports(tmp_path):
+    s = write_session(tmp_path, "only", "2026-01-01", 0)
+    (s.atlas / "atlas.json").unlink()
+    (s.sfm / "quality.json").write_text("{not json")
+    text = build_report("p", [s], [], tmp_path / "r.html", SMALL).read_text()
+    assert "id='session-only'" in text and "cm-data" not in text and "Plotly" not in text
+    assert "<td>—</td>" in text  # figures it could not read
+
+
+def test_bad_inputs_are_named(tmp_path):
+    s = write_session(tmp_path, "a", "2026-01-01", 0)
+    with pytest.raises(InputError, match="no session"):
+        build_report("p", [], [], tmp_path / "r.html")
+    with pytest.raises(InputError, match="unknown session"):
+        build_report("p", [s], [ComparisonInputs("a", "zz", tmp_path)], tmp_path / "r.html")
+    (s.atlas / "coverage.png").unlink()
+    with pytest.raises(InputError, match=r"coverage\.png not found"):
+        build_report("p", [s], [], tmp_path / "r.html")
+    assert not (tmp_path / "r.html").exists()
+    with pytest.raises(ValueError, match="jpeg_quality"):
+        ReportConfig(jpeg_quality=0)
+
+
+def test_report_is_deterministic(tmp_path):
+    sessions, comparisons = make_study(tmp_path, names=("a", "b"))
+    first = build_report("p", sessions, comparisons, tmp_path / "1.html", SMALL).read_bytes()
+    assert build_report("p", sessions, comparisons, tmp_path / "2.html", SMALL).read_bytes() == first
+
+
+def test_vertex_colours_follow_the_atlas_projection(tmp_path):
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=12)
+    path = tmp_path / "s.ply"
+    o3d.io.write_triangle_mesh(str(path), sphere)
+    geo = load_geometry(path, 3000)
+    assert 1000 < len(geo.vertices) <= 3000 and geo.faces.max() < len(geo.vertices)  # subdivided
+    assert len(load_geometry(path, 600).vertices) <= 700  # simplified
+    img = np.zeros((64, 128, 3), np.uint8)
+    img[:, :64] = (255, 0, 0)  # azimuth < 0 (y < 0): red
+    img[:, 64:] = (0, 0, 255)  # azimuth > 0 (y > 0): blue
+    c = vertex_colours(geo, Projection("equirectangular", 1024, 512), img).astype(int)
+    y = geo.vertices[:, 1]
+    assert (c[y < -2, 0] > 200).all() and (c[y < -2, 2] < 50).all()
+    assert (c[y > 2, 2] > 200).all() and (c[y > 2, 0] < 50).all()
+    # columns wrap around (azimuth ±180°), rows clamp
+    wrap = bilinear_wrap(img, np.array([127.5]), np.array([100.0]))
+    assert wrap[0].tolist() == [128, 0, 128]
+
+
+def test_geometry_json_round_trips():
+    import base64
+
+    v = np.array([[0, 0, 0], [100, 0, 0], [0, 50, 20.5]], np.float32)
+    g = Geometry(v, np.array([[0, 1, 2]], np.uint32)).to_json()
+    q = np.frombuffer(base64.b64decode(g["positions"]), "<u2").reshape(-1, 3)
+    back = np.array(g["origin"]) + q * np.array(g["step"])
+    assert np.abs(back - v).max() < 0.002 and g["index_bits"] == 16
+    assert np.frombuffer(base64.b64decode(g["faces"]), "<u2").tolist() == [0, 1, 2]
