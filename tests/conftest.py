@@ -76,7 +76,8 @@ HALF_CAMERA = {"width": 640, "height": 360, "fx": 469.932, "fy": 469.932, "cx": 
 
 def phantom_config(**phantom) -> dict:
     return {"cameras": {"phantom_half": HALF_CAMERA},
-            "phantom": {"enabled": True, "camera": "phantom_half", **phantom},
+            # lossless: mp4v at 640x360 wipes out the fine texture SfM needs (see PhantomConfig)
+            "phantom": {"enabled": True, "camera": "phantom_half", "lossless_video": True, **phantom},
             "atlas": {"width": 1024, "height": 512}}
 
 

@@ -35,10 +35,18 @@ def test_phantom_study_runs_end_to_end(phantom_study):
     evaluation = json.loads((tmp_path / "results/phantom/evaluation.json").read_text())
     for session in ("s1", "s2"):
         scores = evaluation["sessions"][session]
-        assert scores["registration"]["registered_share"] >= 0.7
-        assert scores["reprojection"]["mean_error_px"] < 1.0
-        assert scores["atlas"]["coverage_percent"] > 80
+        # every frame the frames stage kept is registered (it keeps ~90 % of a clean scan)
+        assert scores["registration"]["registered_share"] >= 0.85
+        assert scores["reprojection"]["mean_error_px"] < 0.8
+        assert scores["trajectory"]["rmse_mm"] < 1.0  # measured 0.24-0.28 mm
+        assert abs(scores["trajectory"]["scale_error"]) < 0.05
+        assert scores["surface"]["accuracy_mean_mm"] < 0.6
+        assert scores["surface"]["completeness"] > 0.95
+        assert abs(scores["atlas"]["coverage_error_pp"]) < 3
+        assert scores["atlas"]["ssim"] > 0.7
     assert set(evaluation["comparisons"]) == {"s1_vs_s2"}
+    lesions = evaluation["comparisons"]["s1_vs_s2"]["lesions"]
+    assert lesions["n_matched"] >= 5 and lesions["false_positives"] <= 1  # measured 6/6, 0
     compare = tmp_path / "results/phantom/compare/s1_vs_s2"
     assert json.loads((compare / "registration.json").read_text())["registered"]
     assert list(pd.read_csv(compare / "changes.csv").columns[:4]) == ["id", "x", "y", "z"]

@@ -10,7 +10,8 @@ bottom along -z. Session 2 is the same bladder, deformed in place when
 
 Files written per session (``generate_session``):
 
-* ``video.mp4``  mp4v, ``cfg.fps``, camera.width x camera.height, lens distortion applied.
+* ``video.mp4``  mp4v (FFV1, lossless, with ``PhantomConfig(lossless_video=True)``),
+  ``cfg.fps``, camera.width x camera.height, lens distortion applied.
 * ``poses.csv``  ``frame,qw,qx,qy,qz,tx,ty,tz``: camera-to-world rotation (unit quaternion,
   qw >= 0) and camera centre (mm); frame = 0-based index in the video; OpenCV camera axes.
 * ``camera.json``  ``Camera.save`` of the calibration used (with distortion).

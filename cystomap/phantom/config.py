@@ -40,6 +40,9 @@ class PhantomConfig:
     bad_frame_fraction: float = 0.0
     # Gaussian sensor noise, standard deviation in 8-bit DN
     noise_sigma: float = 2.0
+    # code video.mp4 losslessly (FFV1, ~40x larger) instead of with mp4v, whose fixed
+    # quantiser removes the fine low-contrast texture at low resolutions (e.g. 640x360)
+    lossless_video: bool = False
     # relative amplitude of the smooth irregularity of the wall (0 = ellipsoid + neck)
     irregularity: float = 0.045
     # length of the urethra tube below the aperture, in mm

@@ -2,10 +2,13 @@
 
 Per pixel: the ray of the *distorted* pixel (the pixel grid undistorted once with
 cv2.undistortPoints), first hit on the wall/tube mesh, albedo from the cube map at the hit's
-material point (trilinear, level chosen from the pixel footprint), light at the tip:
-``E = cos(incidence) / distance^2``, vignetting ``cos^3`` of the ray's angle to the optical
-axis, auto-exposure, gamma 1/2.2, session gain, a slight optical blur, optional motion blur,
-specular glints and bad frames, Gaussian sensor noise. Output is 8-bit RGB.
+material point, prefiltered by the pixel's footprint on the wall (ray differentials: two
+trilinear mipmap taps along the footprint's longer edge, so the fine texture neither aliases
+nor over-blurs at low resolution), light at the tip: ``E = cos(incidence) / distance^2``,
+vignetting ``cos^3`` of the ray's angle to the optical axis, auto-exposure, gamma 1/2.2,
+session gain, a slight optical blur (a fixed angle, so the same optics at every resolution),
+optional motion blur, specular glints and bad frames, Gaussian sensor noise. Output is 8-bit
+RGB.
 
 The display value is ``albedo * (exposure * E * V) ** (1 / 2.2) * gain``, i.e. a per-pixel
 scalar times the true albedo colour (up to glints, blur, noise and clipping).
@@ -27,7 +30,10 @@ from cystomap.phantom.texture import CubeMap, cast
 GAMMA = 2.2
 EXPOSURE_TARGET = 0.55  # 60th percentile of exposure * E * V
 TUBE_DARKENING = 0.6
-OPTICAL_BLUR_PX = 0.55
+# optical point spread (Gaussian sigma) as an angle: 0.55 px of the 1280x720 76-degree camera
+# (the same optics at every resolution)
+OPTICAL_BLUR_RAD = 0.55 / 939.864
+MIN_COS_FOOTPRINT = 0.1  # grazing incidence: pixel footprints at most 10x stretched
 SPECULAR_STRENGTH = 3.0
 SPECULAR_EXPONENT = 150.0
 
@@ -58,6 +64,8 @@ class RayGrid:
     pixel_angle: np.ndarray  # (H*W,) float32, angular size of the pixel (rad)
     vignette: np.ndarray  # (H*W,) float32, cos^3 of the angle to the optical axis
     max_radius: float = np.inf  # largest undistorted normalised radius in the image
+    du: np.ndarray | None = None  # (H*W, 3) float32, change of the ray per pixel step in u
+    dv: np.ndarray | None = None  # (H*W, 3) float32, ... in v
 
 
 def _distort(x: np.ndarray, y: np.ndarray, dist) -> tuple[np.ndarray, ...]:
@@ -121,11 +129,14 @@ def pixel_rays(camera: Camera) -> RayGrid:
                          f"(round-trip error {err:.3g} px)")
     d = unit(xyz)
     grid = d.reshape(h, w, 3)
-    gx = np.linalg.norm(np.gradient(grid, axis=1), axis=-1)
-    gy = np.linalg.norm(np.gradient(grid, axis=0), axis=-1)
+    du = np.gradient(grid, axis=1) if w > 1 else np.zeros_like(grid)
+    dv = np.gradient(grid, axis=0) if h > 1 else np.zeros_like(grid)
+    gx = np.linalg.norm(du, axis=-1)
+    gy = np.linalg.norm(dv, axis=-1)
     ang = np.sqrt(gx * gy).reshape(-1)
     return RayGrid(w, h, d.astype(np.float32), ang.astype(np.float32),
-                   (d[:, 2] ** 3).astype(np.float32), float(np.hypot(xy[:, 0], xy[:, 1]).max()))
+                   (d[:, 2] ** 3).astype(np.float32), float(np.hypot(xy[:, 0], xy[:, 1]).max()),
+                   du.reshape(-1, 3).astype(np.float32), dv.reshape(-1, 3).astype(np.float32))
 
 
 @dataclass
@@ -138,6 +149,10 @@ class Trace:
     cos_inc: np.ndarray  # (M,) cosine of incidence (light at the tip)
     t_hit: np.ndarray  # (M,) distances of the hits
     all_hit: bool  # every pixel hit something (then M = N and hit-indexing is a no-op)
+    rot: np.ndarray | None = None  # camera-to-world rotation of the frame
+    dirs: np.ndarray | None = None  # (M, 3) unit ray directions of the hits (session frame)
+    pid: np.ndarray | None = None  # (M,) triangle ids of the hits
+    dot: np.ndarray | None = None  # (M,) normal . ray direction (signed cos_inc)
 
     def of_hits(self, per_pixel: np.ndarray) -> np.ndarray:
         """Per-pixel array restricted to the hit pixels."""
@@ -158,6 +173,7 @@ class Renderer:
             np.array_equal(bladder.material, bladder.vertices))
         self.tri_mat = bladder.material[tri].reshape(-1, 9).astype(np.float32)
         self.tri_nrm = bladder.normals[tri].reshape(-1, 9).astype(np.float32)
+        self.tri_jac = None if self.material_is_world else material_jacobians(bladder)
 
     def trace(self, rot: np.ndarray, centre: np.ndarray, nthreads: int = 0,
               rays: RayGrid | None = None) -> Trace:
@@ -179,7 +195,8 @@ class Renderer:
         del tn
         # (interpolated unit vertex normals differ by ~1 deg: their length is 1 - 1e-4, so
         # they are not renormalised)
-        cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d_ok))
+        dot = np.einsum("ij,ij->i", nrm, d_ok)
+        cos_inc = np.abs(dot)
         th = t if everything else t[ok]
         if self.material_is_world:
             mat = d_ok * th[:, None]
@@ -191,7 +208,39 @@ class Renderer:
             mat += tm[:, 6:9] * v
         wall = np.zeros(len(t), bool)
         wall[ok] = pid < self.bladder.n_wall_tris
-        return Trace(t, ok, wall, mat, nrm, cos_inc, th, everything)
+        return Trace(t, ok, wall, mat, nrm, cos_inc, th, everything, rot, d_ok, pid, dot)
+
+    def footprint_axes(self, tr: Trace) -> tuple[np.ndarray, np.ndarray]:
+        """Edges of each hit pixel's footprint on the wall (ray differentials): two (3, M)
+        arrays (x, y, z rows) in material mm.
+
+        A one-pixel step of the ray (``du``/``dv``) moves the hit along the tangent plane by
+        ``t * (dd - (dd . n) / (d . n) * d)``; the session-2 deformation maps it to material
+        coordinates with the hit triangle's Jacobian. Grazing incidence is capped at
+        MIN_COS_FOOTPRINT.
+        """
+        rg = self.rays
+        t = tr.t_hit
+        d = np.ascontiguousarray(tr.dirs.T)
+        n = np.ascontiguousarray(tr.normal.T)
+        dn = tr.dot
+        inv = t / np.copysign(np.maximum(np.abs(dn), MIN_COS_FOOTPRINT), dn)
+        jac = None if self.tri_jac is None else np.take(self.tri_jac, tr.pid, axis=1)
+        out = []
+        for dd in (rg.du, rg.dv):
+            w = np.ascontiguousarray(rotate(tr.of_hits(dd), tr.rot).T)
+            c = w[0] * n[0]
+            c += w[1] * n[1]
+            c += w[2] * n[2]
+            c *= inv
+            w *= t
+            for i in range(3):
+                w[i] -= d[i] * c
+            if jac is not None:
+                w = np.stack([jac[3 * i] * w[0] + jac[3 * i + 1] * w[1] + jac[3 * i + 2] * w[2]
+                              for i in range(3)])
+            out.append(w)
+        return out[0], out[1]
 
     def irradiance(self, tr: Trace, rays: RayGrid | None = None) -> np.ndarray:
         """E * V per hit pixel (linear, before exposure)."""
@@ -203,8 +252,12 @@ class Renderer:
         """Float RGB image (H, W, 3) in display units 0..255 (before noise and blur)."""
         rg = self.rays
         th = tr.t_hit
-        footprint = th * tr.of_hits(rg.pixel_angle) / np.maximum(tr.cos_inc, 0.2)
-        albedo, gloss = self.cube.sample(tr.material, footprint, with_gloss=specular)
+        if rg.du is not None and tr.rot is not None:
+            albedo, gloss = self.cube.sample(tr.material, with_gloss=specular,
+                                             axes=self.footprint_axes(tr))
+        else:
+            footprint = th * tr.of_hits(rg.pixel_angle) / np.maximum(tr.cos_inc, 0.2)
+            albedo, gloss = self.cube.sample(tr.material, footprint, with_gloss=specular)
         tube = ~tr.of_hits(tr.wall)
         if tube.any():
             albedo[tube] *= TUBE_DARKENING
@@ -223,6 +276,28 @@ class Renderer:
             img = np.zeros((rg.height * rg.width, 3), np.float32)
             img[tr.hit] = shaded
         return img.reshape(rg.height, rg.width, 3)
+
+
+def material_jacobians(bladder: Bladder) -> np.ndarray:
+    """Per triangle, the 3x3 map of in-plane world displacements to material ones: (9, N),
+    row-major matrix entries in rows."""
+    tri = bladder.triangles
+    pw = bladder.vertices[tri]
+    pm = bladder.material[tri]
+    ew = np.stack([pw[:, 1] - pw[:, 0], pw[:, 2] - pw[:, 0]], -1)  # (N, 3, 2)
+    em = np.stack([pm[:, 1] - pm[:, 0], pm[:, 2] - pm[:, 0]], -1)
+    gram = np.einsum("nki,nkj->nij", ew, ew)
+    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] ** 2
+    det = np.where(np.abs(det) > 1e-12, det, 1e-12)
+    ginv = np.stack([np.stack([gram[:, 1, 1], -gram[:, 0, 1]], -1),
+                     np.stack([-gram[:, 0, 1], gram[:, 0, 0]], -1)], 1) / det[:, None, None]
+    jac = np.einsum("nai,nij,nbj->nab", em, ginv, ew)  # em (ew^T ew)^-1 ew^T
+    return np.ascontiguousarray(jac.reshape(-1, 9).T, dtype=np.float32)
+
+
+def optical_blur_px(camera: Camera) -> float:
+    """Gaussian sigma (px) of the optical point spread for ``camera``."""
+    return OPTICAL_BLUR_RAD * math.sqrt(camera.fx * camera.fy)
 
 
 def motion_kernel(length: float, angle_rad: float) -> np.ndarray:
@@ -244,9 +319,14 @@ def motion_kernel(length: float, angle_rad: float) -> np.ndarray:
 
 
 def finish(img: np.ndarray, noise_rng: np.random.Generator, noise_sigma: float,
-           blur_len: float = 0.0, blur_angle: float = 0.0, bad: str | None = None) -> np.ndarray:
-    """Optical/motion blur, bad-frame effects, sensor noise → uint8 RGB."""
-    img = cv2.GaussianBlur(img, (0, 0), OPTICAL_BLUR_PX)
+           blur_len: float = 0.0, blur_angle: float = 0.0, bad: str | None = None,
+           optical_px: float = 0.55) -> np.ndarray:
+    """Optical/motion blur, bad-frame effects, sensor noise → uint8 RGB.
+
+    ``optical_px``: sigma of the optical blur in pixels (``optical_blur_px(camera)``).
+    """
+    if optical_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), optical_px)
     if blur_len >= 1.0:
         img = cv2.filter2D(img, -1, motion_kernel(blur_len, blur_angle),
                            borderType=cv2.BORDER_REFLECT)

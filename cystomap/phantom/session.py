@@ -34,6 +34,7 @@ from cystomap.phantom.render import (
     RayGrid,
     Renderer,
     finish,
+    optical_blur_px,
     pixel_rays,
     rotate,
 )
@@ -166,6 +167,14 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
 
     Files: video.mp4, poses.csv, camera.json, surface.ply, albedo.png, seen.png,
     lesions.csv, truth.json (see the package docstring for their conventions).
+
+    ``cfg.lossless_video``: code the video with FFV1, lossless (~39 MB for 124 frames at 640x360,
+    ~150 MB at 1280x720, in an .mp4 container that OpenCV/FFmpeg read) instead of MPEG-4
+    part 2 (mp4v, ~40x smaller), whose fixed quantiser removes most of the mucosa's fine,
+    low-contrast texture at the video's own pixel scale: at 640x360 that halves the SIFT
+    matches between neighbouring frames and makes SfM unreliable (registration 40-90 %,
+    trajectory errors 0.5-14 mm on seeds 7-10, varying from run to run; lossless: <= 0.3 mm,
+    every frame).
     """
     if session not in (1, 2):
         raise InputError(f"phantom: session must be 1 or 2, got {session!r}")
@@ -191,6 +200,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     bad = _bad_frames(cfg, session)
     gain = cfg.session2_gain if session == 2 else 1.0
     atlas = Atlas(bladder, scene, cfg.atlas_height)
+    optical = optical_blur_px(camera)
     threads = cfg.threads or min(2, os.cpu_count() or 1)
     cast_threads = 1 if threads > 1 else 0
     log.info("phantom session %d: %d frames %dx%d, %d threads (setup %.1f s)", session, n,
@@ -201,7 +211,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         img = renderer.shade(tr, float(exposure[k]), gain, cfg.specular)
         noise = np.random.default_rng(np.random.SeedSequence([cfg.seed, STREAM_NOISE + session, k]))
         out = finish(img, noise, cfg.noise_sigma, float(blur_len[k]), float(blur_ang[k]),
-                     bad.get(k))
+                     bad.get(k), optical)
         th = tr.t[tr.hit]
         stats = {"min": float(th.min()) if len(th) else float("nan"),
                  "median": float(np.median(th)) if len(th) else float("nan")}
@@ -220,12 +230,13 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
 
     seen = np.zeros(atlas.h * atlas.w, bool)
     dmin, dmed = np.zeros(n), np.zeros(n)
+    codec = "FFV1" if cfg.lossless_video else "mp4v"
     t_render = time.perf_counter()
     with atomic_dir(out_dir) as tmp:
-        writer = cv2.VideoWriter(str(tmp / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+        writer = cv2.VideoWriter(str(tmp / "video.mp4"), cv2.VideoWriter_fourcc(*codec),
                                  float(cfg.fps), (camera.width, camera.height))
         if not writer.isOpened():
-            raise StageError("phantom: cannot open an mp4v VideoWriter (OpenCV without FFMPEG?)")
+            raise StageError(f"phantom: cannot open an {codec} VideoWriter (OpenCV without FFMPEG?)")
         try:
             with ThreadPoolExecutor(max_workers=threads) as pool:
                 for k, (frame, stats, seen_idx) in enumerate(pool.map(render, range(n))):
@@ -254,7 +265,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         rows = lesion_rows(lesions, bladder) if session == 2 else []
         _write_lesions(tmp / "lesions.csv", rows)
         truth = _truth(cfg, session, camera, bladder, atlas, seen, traj, exposure, blur_len,
-                       blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows)
+                       blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows, optical)
+        truth["video_codec"] = codec.lower()
         write_json(tmp / "truth.json", truth)
     log.info("phantom session %d written to %s in %.1f s (seen %.1f %%)", session, out_dir,
              time.perf_counter() - t_start, 100 * truth["seen_fraction"])
@@ -264,7 +276,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
 def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, atlas: Atlas,
            seen: np.ndarray, traj: Trajectory, exposure: np.ndarray, blur_len: np.ndarray,
            blur_ang: np.ndarray, bad: dict[int, str], gain: float, dmin: np.ndarray,
-           dmed: np.ndarray, axis_hit: np.ndarray, render_s: dict, rows: list[dict]) -> dict:
+           dmed: np.ndarray, axis_hit: np.ndarray, render_s: dict, rows: list[dict],
+           optical_px: float) -> dict:
     ap_dir, ap_ang = aperture_cone(bladder)
     ap_az, ap_el = az_el(ap_dir)
     rim = bladder.vertices[bladder.rim]
@@ -334,8 +347,10 @@ def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, a
                                      "mean": float(traj.translation_steps_mm().mean())},
         "image_model": (
             "pixel = albedo * (exposure * cos(incidence) / distance^2 * cos^3(off-axis))"
-            "^(1/2.2) * gain, optical blur 0.55 px, + N(0, noise_sigma); light at the tip;"
-            " albedo.png = the albedo of this model"),
+            f"^(1/2.2) * gain, optical blur sigma {optical_px:.3g} px (0.55 px at the 1280x720"
+            " 76-degree camera: a fixed angle), + N(0, noise_sigma); light at the tip; albedo"
+            " prefiltered by each pixel's footprint on the wall (mipmaps); albedo.png = the"
+            " albedo of this model"),
         **render_s,
         "render_seconds_note": "render_seconds = scene, texture, trajectory and all frames"
                                " (before writing the truth files); frames_seconds = frames only",
