@@ -108,9 +108,9 @@ def run_defaults(pre: Path, out: Path) -> dict[str, float]:
 
 
 def score(truth: Path, sfm: Path) -> dict[str, Any]:
-    from cystomap.evaluate import evaluate_session
+    from cystomap.evaluate import EvalConfig, evaluate_session
 
-    r = evaluate_session(truth, sfm)
+    r = evaluate_session(truth, sfm, cfg=EvalConfig(reference_model="largest"))  # defaults: several models
     reg, traj = r.get("registration", {}), r.get("trajectory", {})
     models = r.get("models", [])
     return {
