@@ -18,3 +18,29 @@ def imwrite_rgb(path: Path, img: np.ndarray) -> None:
         img = img[..., ::-1]
     if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
         raise StageError(f"cannot write {path}")
+
+
+def sample_bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray,
+                    wrap_columns: bool = False) -> np.ndarray:
+    """Bilinear samples (N, C) float32 of ``img`` at pixel coordinates (centres at integers).
+
+    Outside the image the border is repeated; with ``wrap_columns`` the columns are periodic
+    instead (an equirectangular atlas, azimuth ±180°) and only the rows are clamped.
+    """
+    u = np.asarray(u, np.float32)
+    n = len(u)
+    if n == 0:
+        return np.zeros((0, img.shape[2] if img.ndim == 3 else 1), np.float32)
+    if wrap_columns:
+        w = img.shape[1]
+        img = np.concatenate([img, img[:, :1]], axis=1)  # column w is column 0 again
+        u = np.mod(u, w).astype(np.float32)
+    cols = 1024  # cv2.remap maps must stay below 32767 rows and columns
+    rows = -(-n // cols)
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n] = u
+    my[:n] = v
+    out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols),
+                    interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(rows * cols, -1)[:n].astype(np.float32)

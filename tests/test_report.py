@@ -12,10 +12,10 @@ import pytest
 from cystomap.atlas.projection import Projection
 from cystomap.compare.changes import CHANGE_COLUMNS
 from cystomap.errors import InputError
-from cystomap.images import imwrite_rgb
+from cystomap.images import imwrite_rgb, sample_bilinear
 from cystomap.outputs import write_json
 from cystomap.report import ComparisonInputs, ReportConfig, SessionInputs, build_report
-from cystomap.report.model3d import Geometry, bilinear_wrap, load_geometry, vertex_colours
+from cystomap.report.model3d import Geometry, load_geometry, vertex_colours
 
 ATLAS_W, ATLAS_H = 256, 128
 RADIUS = 40.0
@@ -260,8 +260,8 @@ def test_vertex_colours_follow_the_atlas_projection(tmp_path):
     assert (c[y < -2, 0] > 200).all() and (c[y < -2, 2] < 50).all()
     assert (c[y > 2, 2] > 200).all() and (c[y > 2, 0] < 50).all()
     # columns wrap around (azimuth ±180°), rows clamp
-    wrap = bilinear_wrap(img, np.array([127.5]), np.array([100.0]))
-    assert wrap[0].tolist() == [128, 0, 128]
+    wrap = sample_bilinear(img, np.array([127.5]), np.array([100.0]), wrap_columns=True)
+    assert np.rint(wrap[0]).tolist() == [128, 0, 128]
 
 
 def test_geometry_json_round_trips():

@@ -32,6 +32,7 @@ import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.errors import InputError
+from cystomap.images import sample_bilinear
 
 log = logging.getLogger(__name__)
 
@@ -149,24 +150,6 @@ def pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
             break
         pyr.append(cv2.pyrDown(pyr[-1]))
     return pyr
-
-
-def sample_bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N, C) float32 of ``img`` at pixel coordinates (centres at integers)."""
-    import cv2
-
-    n = len(u)
-    if n == 0:
-        return np.zeros((0, img.shape[2] if img.ndim == 3 else 1), np.float32)
-    cols = 1024  # cv2.remap maps must stay below 32767 rows and columns
-    rows = -(-n // cols)
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
-    mx[:n] = u
-    my[:n] = v
-    out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols),
-                    interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(rows * cols, -1)[:n].astype(np.float32)
 
 
 def sample_mip(pyr: list[np.ndarray], u: np.ndarray, v: np.ndarray,

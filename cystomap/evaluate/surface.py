@@ -15,12 +15,14 @@ from cystomap.evaluate.trajectory import Sim3
 from cystomap.evaluate.truth import (
     SurfaceQuery,
     Truth,
+    equirect_coords,
     equirect_directions,
     equirect_pixels,
     read_equirect,
     read_mesh,
     sample_surface,
 )
+from cystomap.images import sample_bilinear
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +143,9 @@ def _score_atlas_image(
     in_model = sim3.inverse().apply(wall)
     row, col = equirect_pixels(in_model - atlas_b, *atlas.shape[:2])
     px = atlas[row, col]
-    smooth = _bilinear(atlas, in_model - atlas_b)  # for the image comparison
+    # bilinear, for the image comparison
+    smooth = sample_bilinear(atlas.astype(np.float32),
+                             *equirect_coords(in_model - atlas_b, *atlas.shape[:2])[::-1], wrap_columns=True)
     if atlas.ndim == 2:
         painted_hit, grey_hit = px > 0, px
     elif atlas.shape[2] in (2, 4):
@@ -169,27 +173,11 @@ def _score_atlas_image(
     else:
         out["albedo_correlation"] = None
     resampled = np.zeros(len(dirs))
-    resampled[hit] = smooth if atlas.ndim == 2 else (
+    resampled[hit] = smooth[:, 0] if atlas.ndim == 2 else (
         smooth[:, :-1].mean(axis=1) if atlas.shape[2] in (2, 4) else smooth.mean(axis=1))
     out.update(_image_similarity(truth.albedo, resampled.reshape(h, w), both.reshape(h, w),
                                  weight.reshape(h, w)))
     return out
-
-
-def _bilinear(atlas: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Atlas values at ``directions`` (from the atlas barycentre), bilinear, wrapping in azimuth."""
-    import cv2
-
-    h, w = atlas.shape[:2]
-    az = np.arctan2(directions[:, 1], directions[:, 0])
-    el = np.arctan2(directions[:, 2], np.hypot(directions[:, 0], directions[:, 1]))
-    col = ((az + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
-    row = ((np.pi / 2 - el) / np.pi * h - 0.5).astype(np.float32)
-    n, width = len(directions), 4096  # remap wants maps of < 32767 rows and columns
-    pad = -n % width
-    col, row = (np.pad(v, (0, pad)).reshape(-1, width) for v in (col, row))
-    out = cv2.remap(atlas.astype(np.float32), col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-    return out.reshape(-1, *atlas.shape[2:])[:n].astype(np.float64)
 
 
 def _image_similarity(

@@ -235,12 +235,20 @@ def equirect_pixels(
     directions: np.ndarray, height: int, width: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """(row, column) of the pixel containing each direction (need not be unit length)."""
+    row, col = equirect_coords(directions, height, width)
+    col_i = np.floor(col + 0.5).astype(np.int64) % width
+    row_i = np.clip(np.floor(row + 0.5).astype(np.int64), 0, height - 1)
+    return row_i, col_i
+
+
+def equirect_coords(
+    directions: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous (row, column) of each direction, pixel centres at integers."""
     d = np.asarray(directions, dtype=np.float64)
     az = np.arctan2(d[..., 1], d[..., 0])
     el = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
-    col = np.floor((az + math.pi) / (2 * math.pi) * width).astype(np.int64) % width
-    row = np.clip(np.floor((math.pi / 2 - el) / math.pi * height).astype(np.int64), 0, height - 1)
-    return row, col
+    return (math.pi / 2 - el) / math.pi * height - 0.5, (az + math.pi) / (2 * math.pi) * width - 0.5
 
 
 def sample_surface(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.atlas.projection import Projection
+from cystomap.images import sample_bilinear
 
 log = logging.getLogger(__name__)
 
@@ -125,27 +126,8 @@ def vertex_colours(geometry: Geometry, proj: Projection, rgb: np.ndarray) -> np.
     # The contract is for the full-size atlas; rescale continuous pixel coordinates.
     scaled = Projection(proj.kind, iw, ih, proj.barycentre, proj.axes)
     col, row = scaled.point_to_pixel(v)
-    return bilinear_wrap(img, col, row)
-
-
-def bilinear_wrap(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` (H, W, 3) at continuous (col, row): columns wrap around
-    (azimuth is periodic), rows are clamped."""
-    h, w = img.shape[:2]
-    col = np.asarray(col, np.float64)
-    row = np.clip(np.asarray(row, np.float64), 0, h - 1)
-    c0 = np.floor(col)
-    r0 = np.clip(np.floor(row), 0, max(h - 2, 0))
-    fc = (col - c0)[:, None]
-    fr = (row - r0)[:, None]
-    c0i = c0.astype(np.int64) % w
-    c1i = (c0i + 1) % w
-    r0i = r0.astype(np.int64)
-    r1i = np.minimum(r0i + 1, h - 1)
-    src = img.astype(np.float32)
-    top = src[r0i, c0i] * (1 - fc) + src[r0i, c1i] * fc
-    bot = src[r1i, c0i] * (1 - fc) + src[r1i, c1i] * fc
-    return np.clip(np.rint(top * (1 - fr) + bot * fr), 0, 255).astype(np.uint8)
+    out = sample_bilinear(img, col, row, wrap_columns=True)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def lifted(points: np.ndarray, centre: np.ndarray, fraction: float = 0.04) -> np.ndarray:
