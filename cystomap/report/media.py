@@ -28,8 +28,8 @@ class Embedded:
         return len(self.uri)
 
 
-def read_rgb(path: Path, background: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
-    """An image file as RGB uint8; transparent pixels (alpha) composited over ``background``."""
+def read_rgba(path: Path) -> np.ndarray:
+    """An image file as RGB or RGBA uint8 (16-bit scaled down, grey made RGB)."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -39,11 +39,22 @@ def read_rgb(path: Path, background: tuple[int, int, int] = (0, 0, 0)) -> np.nda
         img = (img / 257).astype(np.uint8) if img.dtype == np.uint16 else img.astype(np.uint8)
     if img.ndim == 2:
         return np.dstack([img] * 3)
-    if img.shape[2] == 4:
-        alpha = img[..., 3:4].astype(np.float32) / 255.0
-        bg = np.array(background[::-1], np.float32)
-        img = np.rint(img[..., :3] * alpha + bg * (1 - alpha)).astype(np.uint8)
-    return np.ascontiguousarray(img[..., 2::-1])
+    order = [2, 1, 0, 3] if img.shape[2] == 4 else [2, 1, 0]
+    return np.ascontiguousarray(img[..., order])
+
+
+def over(img: np.ndarray, background: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
+    """RGB uint8: an RGBA image's transparent pixels composited over ``background``."""
+    if img.shape[2] != 4:
+        return img
+    alpha = img[..., 3:4].astype(np.float32) / 255.0
+    bg = np.array(background, np.float32)
+    return np.rint(img[..., :3] * alpha + bg * (1 - alpha)).astype(np.uint8)
+
+
+def read_rgb(path: Path, background: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
+    """An image file as RGB uint8; transparent pixels (alpha) composited over ``background``."""
+    return over(read_rgba(path), background)
 
 
 def downsample(rgb: np.ndarray, max_width: int) -> np.ndarray:

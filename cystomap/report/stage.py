@@ -116,8 +116,8 @@ def _session_page(i: int, s: SessionInputs, summary: SessionSummary, base: Path,
     for p in (atlas_png, coverage_png):
         if not p.is_file():
             raise InputError(f"report: session {s.name}: {p} not found")
-    atlas_rgb = media.read_rgb(atlas_png)
-    atlas_img = media.embed_array(atlas_rgb, cfg.image_width, cfg.jpeg_quality, atlas_png)
+    atlas_rgba = media.read_rgba(atlas_png)
+    atlas_img = media.embed_array(media.over(atlas_rgba), cfg.image_width, cfg.jpeg_quality, atlas_png)
     coverage_img = media.embed_file(coverage_png, cfg.image_width, cfg.jpeg_quality)
     meta = read_json(atlas_dir / "atlas.json")
     cov = meta.get("coverage") if isinstance(meta.get("coverage"), dict) else {}
@@ -130,7 +130,7 @@ def _session_page(i: int, s: SessionInputs, summary: SessionSummary, base: Path,
         gkey = f"g{i}"
         geometries[gkey] = geometry
         views["geometries"][gkey] = {**geometry.to_json(), "units": summary.units, "session": s.name}
-        textured = media.read_rgb(atlas_png, UNSEEN_GREY)
+        textured = media.over(atlas_rgba, UNSEEN_GREY)
         view_key = f"s{i}"
         views["views"][view_key] = model3d.View(gkey, model3d.vertex_colours(geometry, proj, textured)).to_json()
     else:
