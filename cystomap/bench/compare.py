@@ -56,7 +56,7 @@ def bench_compare(work: Path, repeats: int = 1, pairs: Sequence[str] = tuple(PAI
         sizes = {e["diameter_mm"]: e for e in scores.get("lesions", [])}
         row: dict[str, Any] = {
             "pair": name, "seed": seed, "registered": reg.get("registered"),
-            "inliers": reg.get("n_inliers", reg.get("inliers")),
+            "inliers": reg.get("inliers"),
             "true_lesions": scores.get("n_true"), "found": scores.get("n_matched"),
             "false_positives": scores.get("false_positives"),
             "centroid_error_mm_mean": _r(scores.get("localisation_error_mm_mean")),
