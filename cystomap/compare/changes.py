@@ -25,6 +25,18 @@ to it, and the mesh closes it with a cap whose texture (the urethra seen through
 between sessions; regions centred within ``opening_deg`` of such a camera's direction are
 dropped (lesions at the neck are therefore not reported when the entry was registered).
 
+Gaps and unseen wall: a scan leaves strips of wall unfilmed between its sweeps, and the
+compared wall stops where either session's coverage does. Pieces of one change on both sides
+of an unseen strip narrower than ``gap_fill_mm`` are one region, and its outline is closed
+across the strip. Where a change runs into wall that B saw but A did not
+(``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
+from the surrounding wall's colour to the region's, up to the region's own diameter
+further): the region is measured as B shows it, and ``observed_share`` says how much of it
+was compared. A change must also be visible: the CIE76 ΔE*ab between A's and B's mean
+colours over it at least ``min_delta_e`` (registration residue of fine texture changes single
+pixels, not a patch's mean colour). Regions that end up describing the same wall (both
+pieces of a cut change followed into the gap) are reported once.
+
 Measurement: each region's outline is where its significance exceeds half of its own peak
 (95th percentile), the full-width-at-half-maximum outline, holes filled: a blurred disc's
 half-maximum contour lies on its edge whatever its contrast, so the size does not depend on
@@ -52,7 +64,7 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "diameter_mm", "mean_difference", "score", "peak_significance",
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "enclosed", "luminance_a", "luminance_b",
-                  "point_distance_mm", "elongation")
+                  "point_distance_mm", "elongation", "observed_share", "delta_e")
 
 
 @dataclass
@@ -78,6 +90,8 @@ class Region:
     luminance_b: float = 1.0  # the same in B
     point_distance_mm: float = 0.0  # median distance to the sessions' nearest SfM points
     elongation: float = 1.0  # length / width on the wall (principal axes)
+    observed_share: float = 1.0  # share of the area both sessions saw (rest: bridged gap)
+    delta_e: float = 0.0  # CIE76 colour difference of the region's mean colours, A vs B
 
     def row(self) -> dict[str, Any]:
         return {"id": self.id, "x": self.x, "y": self.y, "z": self.z,
@@ -91,7 +105,8 @@ class Region:
                 "inconsistency": "" if self.inconsistency is None else self.inconsistency,
                 "enclosed": self.enclosed,
                 "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
-                "point_distance_mm": self.point_distance_mm, "elongation": self.elongation}
+                "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
+                "observed_share": self.observed_share, "delta_e": self.delta_e}
 
 
 def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
@@ -164,6 +179,67 @@ def elongation(points: np.ndarray, weights: np.ndarray) -> float:
     return float(np.sqrt(ev[0] / max(ev[1], 1e-12)))
 
 
+def mean_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.ndarray) -> float:
+    """CIE76 ΔE*ab between the weighted mean colours (RGB 0..255) of two sets of pixels.
+
+    The mean over the region, not a per-pixel mean: texture left slightly misaligned (a
+    vessel, mottling) changes single pixels but hardly the patch's mean colour; a lesion
+    changes the patch.
+    """
+    import cv2
+
+    w = weights / max(float(weights.sum()), 1e-12)
+    means = np.stack([(a_rgb * w[:, None]).sum(0), (b_rgb * w[:, None]).sum(0)])
+    lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
+    return float(np.linalg.norm(lab[1] - lab[0]))
+
+
+def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
+                        sub_joint: np.ndarray, sub_hit: np.ndarray, rows: tuple[int, int],
+                        c_idx: np.ndarray, ring_px: int, open_px: float,
+                        gap_kernel: np.ndarray | None) -> np.ndarray:
+    """``outline`` grown over adjoining wall that B saw but that was not compared (A did not
+    see it, or it is in the edge margin) where B's smoothed colour is at least half-way from
+    the surrounding wall's colour to the region's: the part of a change that lies on wall
+    A missed. It grows at most the region's own equivalent diameter, and across strips of
+    wall B did not see either when narrower than ``gap_kernel`` (sub-window arrays).
+    """
+    import cv2
+
+    if diff.b_seen is None or diff.b_smooth is None or not seen.any():
+        return outline
+    r_lo, r_hi = rows
+    eligible = diff.b_seen[r_lo:r_hi][:, c_idx] & ~sub_joint & ~outline
+    ring = _ring(seen, ring_px) & ~seen & sub_joint
+    if not eligible.any() or ring.sum() < 8:
+        return outline
+    colour = diff.b_smooth[r_lo:r_hi][:, c_idx]
+    inside = np.median(colour[seen], axis=0)
+    around = np.median(colour[ring], axis=0)
+    axis = inside - around
+    if float(axis @ axis) < 1e-6:
+        return outline
+    t = (colour - around) @ axis / float(axis @ axis)
+    cand = eligible & (t >= 0.5)
+    if open_px >= 0.5:
+        cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_OPEN, _disc(open_px)) > 0
+    reach = cv2.dilate(outline.astype(np.uint8),
+                       _disc(math.sqrt(4 * float(seen.sum()) / math.pi))) > 0
+    grown = outline | (cand & reach)
+    link = grown
+    if gap_kernel is not None:  # across strips of wall B did not see either
+        unseen = sub_hit & ~diff.b_seen[r_lo:r_hi][:, c_idx]
+        link = grown | ((cv2.dilate(grown.astype(np.uint8), gap_kernel) > 0) & unseen)
+    _, lab = cv2.connectedComponents(link.astype(np.uint8), connectivity=8)
+    keep = np.unique(lab[outline])
+    keep = keep[keep > 0]
+    kept = np.isin(lab, keep) & grown
+    if gap_kernel is not None:
+        closed = cv2.morphologyEx(kept.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
+        kept |= closed & unseen
+    return _fill_holes(kept) & sub_hit
+
+
 def threshold(diff: Difference, k: float) -> tuple[float, dict[str, float]]:
     """``median + k · 1.4826 · MAD`` of the significance on the jointly seen wall."""
     return threshold_of(diff.significance[diff.joint], k)
@@ -207,10 +283,18 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         cand = _morph(cand, cv2.MORPH_CLOSE, k)
         cand = _morph(cand, cv2.MORPH_OPEN, k) & diff.joint
     lab, n = label_wrapped(cand)
-    if cfg.merge_mm > 0 and n > 1:
-        # fragments of one change cut by a thin unseen gap (atlas seam, occlusion sliver)
-        # closer than merge_mm are one region
-        grown = _morph(cand, cv2.MORPH_DILATE, _disc(cfg.merge_mm / 2 / grid.mm_per_px_y))
+    # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
+    # either side shrink by the morphological opening
+    gap_kernel = (_disc((cfg.gap_fill_mm / 2 + cfg.edge_margin_mm + cfg.morphology_mm)
+                        / grid.mm_per_px_y) if cfg.gap_fill_mm > 0 else None)
+    if (cfg.merge_mm > 0 or gap_kernel is not None) and n > 1:
+        # fragments of one change closer than merge_mm, or on both sides of a strip of wall
+        # one session did not see (narrower than gap_fill_mm), are one region
+        grown = cand.copy()
+        if cfg.merge_mm > 0:
+            grown |= _morph(cand, cv2.MORPH_DILATE, _disc(cfg.merge_mm / 2 / grid.mm_per_px_y))
+        if gap_kernel is not None:
+            grown |= _morph(cand, cv2.MORPH_DILATE, gap_kernel) & ~diff.joint & grid.hit
         glab, _ = label_wrapped(grown)
         lab = np.where(cand, glab, 0)
         n = int(lab.max())
@@ -223,6 +307,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     dropped_far = 0
     dropped_neck = 0
     dropped_long = 0
+    dropped_faint = 0
+    dropped_duplicate = 0
     ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
     flat_sig = sig.ravel()
     flat_area = grid.area.ravel()
@@ -230,6 +316,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     flat_delta = diff.delta.reshape(-1, 3)
     h, w = grid.shape
     pdist = diff.point_distance.ravel() if diff.point_distance is not None else None
+    flat_a_rgb, flat_b_rgb = diff.a_rgb.reshape(-1, 3), diff.b_rgb.reshape(-1, 3)
     lum_a = diff.a_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
     lum_b = diff.b_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
     jflat = diff.joint.ravel()
@@ -253,7 +340,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         # regions across the seam: unwrap columns around the region's first column
         c0 = cols[0]
         ucols = (cols - c0 + w // 2) % w - w // 2 + c0
-        pad = int(np.ceil(max(np.ptp(rows), np.ptp(ucols)) / 2)) + 3 + ring_px
+        size_px = max(np.ptp(rows), np.ptp(ucols))
+        pad = int(size_px if cfg.extend_into_unseen else np.ceil(size_px / 2)) + 3 + ring_px
         r_lo, r_hi = max(0, rows.min() - pad), min(h, rows.max() + pad + 1)
         c_idx = np.arange(ucols.min() - pad, ucols.max() + pad + 1) % w
         sub_sig = sig[r_lo:r_hi][:, c_idx]
@@ -265,12 +353,26 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         keep = np.unique(sub_lab[core & half])
         keep = keep[keep > 0]
         outline = _fill_holes(np.isin(sub_lab, keep)) & sub_joint if len(keep) else core
+        # the outline closed across unseen strips of wall that cut into it (concavities
+        # only: closing never reaches beyond the region's own convex outline)
+        seen_outline = outline
+        sub_hit = grid.hit[r_lo:r_hi][:, c_idx]
+        if gap_kernel is not None:
+            closed = cv2.morphologyEx(outline.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
+            outline = _fill_holes(outline | (closed & ~sub_joint & sub_hit))
+            outline &= sub_joint | sub_hit
+        if cfg.extend_into_unseen:
+            outline = _extend_into_unseen(diff, outline, seen_outline, sub_joint, sub_hit,
+                                          (r_lo, r_hi), c_idx, ring_px,
+                                          cfg.morphology_mm / grid.mm_per_px_y, gap_kernel)
         ring = _ring(outline, ring_px) & ~outline
         enclosed = float(sub_joint[ring].mean()) if ring.any() else 0.0
         if enclosed < cfg.min_enclosed:
             dropped_edge += 1
             continue
         rr, cc = np.nonzero(outline)
+        pix_all = (rr + r_lo) * w + c_idx[cc]
+        rr, cc = np.nonzero(seen_outline)
         pix = (rr + r_lo) * w + c_idx[cc]
         p_dist = float(np.median(pdist[pix])) if pdist is not None else 0.0
         if cfg.max_point_distance_mm > 0 and p_dist > cfg.max_point_distance_mm:
@@ -298,15 +400,17 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                          np.round(np.nanmean(flat_pts[pix], axis=0), 1).tolist(), value,
                          cfg.max_inconsistency)
                 continue
-        a = flat_area[pix]
-        area = float(a.sum())
+        a_all = flat_area[pix_all]
+        area = float(a_all.sum())
         if area < min_area:
             dropped_small += 1
             continue
-        p = flat_pts[pix]
+        a = flat_area[pix]
+        observed = float(a.sum()) / max(area, 1e-12)
+        p = flat_pts[pix_all]
         ok = np.isfinite(p).all(axis=1)
-        centroid = (p[ok] * a[ok, None]).sum(0) / max(a[ok].sum(), 1e-12)
-        elong = elongation(p[ok], a[ok])
+        centroid = (p[ok] * a_all[ok, None]).sum(0) / max(a_all[ok].sum(), 1e-12)
+        elong = elongation(p[ok], a_all[ok])
         if cfg.max_elongation > 0 and elong > cfg.max_elongation:
             dropped_long += 1
             log.info("changes: region at %s dropped: elongated (%.1f : 1), a vessel or edge "
@@ -328,8 +432,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         el = math.degrees(math.atan2(q[2], math.hypot(q[0], q[1])))
         col, row = proj_full.point_to_pixel(centroid[None])
         mean_sig = float(np.average(flat_sig[pix], weights=a))
+        delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
+        if delta_e < cfg.min_delta_e:
+            dropped_faint += 1
+            log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, "
+                     "not visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
+            continue
         regions.append(Region(
-            id=0, pixels=pix, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
+            id=0, pixels=pix_all, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
             azimuth_deg=az, elevation_deg=el, area_mm2=area,
             diameter_mm=math.sqrt(4 * area / math.pi),
             mean_difference=float(np.average(np.linalg.norm(flat_delta[pix], axis=1),
@@ -339,19 +449,33 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             inconsistency=consistency.get("inconsistency"), enclosed=enclosed,
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(lum_b[pix])) / lum_ref_b,
-            point_distance_mm=p_dist, elongation=elong))
+            point_distance_mm=p_dist, elongation=elong, observed_share=observed,
+            delta_e=delta_e))
     regions.sort(key=lambda g: -g.score)
+    # pieces of one change on both sides of a gap, each followed into the gap, can describe
+    # the same wall: keep the higher-scoring one
+    taken = np.zeros(h * w, bool)
+    unique = []
+    for g in regions:
+        if taken[g.pixels].mean() > 0.5:
+            dropped_duplicate += 1
+            continue
+        taken[g.pixels] = True
+        unique.append(g)
+    regions = unique
     for i, g in enumerate(regions, start=1):
         g.id = i
     info.update(low_threshold=t_low, candidates=n, dropped_small=dropped_small,
                 dropped_at_edge=dropped_edge, dropped_inconsistent=dropped_inconsistent,
                 dropped_dark_in_a=dropped_dark, dropped_off_reconstruction=dropped_far,
                 dropped_near_neck=dropped_neck, dropped_elongated=dropped_long,
+                dropped_faint=dropped_faint, dropped_duplicate=dropped_duplicate,
                 min_area_mm2=min_area, regions=len(regions),
                 score_definition="largest significance in the region / threshold (> 1)")
     log.info("changes: threshold %.2f (median %.2f + %.1f x MAD %.2f), %d region(s); dropped: "
              "%d too small, %d at the edge of the compared wall, %d off the reconstruction, %d "
-             "on an opening in A, %d photo-inconsistent, %d at the bladder neck", t_high,
-             info["median"], cfg.threshold_k, info["mad_sigma"], len(regions), dropped_small,
-             dropped_edge, dropped_far, dropped_dark, dropped_inconsistent, dropped_neck)
+             "on an opening in A, %d photo-inconsistent, %d at the bladder neck, %d elongated, "
+             "%d faint", t_high, info["median"], cfg.threshold_k, info["mad_sigma"], len(regions),
+             dropped_small, dropped_edge, dropped_far, dropped_dark, dropped_inconsistent,
+             dropped_neck, dropped_long, dropped_faint)
     return regions, info

@@ -110,6 +110,16 @@ class CompareConfig:
     # pieces of one change closer than this (model units; e.g. cut by a thin unseen gap of
     # an atlas) are one region
     merge_mm: float = 4.0
+    # a change cut by a strip of wall that one session did not film (a gap between two
+    # sweeps of the scan) narrower than this (model units; the edge_margin_mm left out on
+    # both sides of the strip is added) is one region, and its outline is closed across the
+    # strip; the region's observed_share says how much of it both sessions saw (0 = off)
+    gap_fill_mm: float = 6.0
+    # a change that runs into wall B saw but A did not (or the edge margin) is followed there
+    # on B's colours (where they are at least half-way from the surrounding wall's to the
+    # region's, up to the region's own diameter further): its size and centroid are B's,
+    # not only those of the compared part; observed_share says how much was compared
+    extend_into_unseen: bool = True
     # a change must lie on reconstructed wall: the median distance from its pixels to the
     # nearest SfM point of each session at most this (model units; elsewhere the mesh is
     # interpolated over a hole and its texture is not the wall's; 0 = no check)
@@ -117,6 +127,12 @@ class CompareConfig:
     # a change is a patch: regions longer than this many times their width on the wall are a
     # vessel or an edge left misaligned (0 = no check)
     max_elongation: float = 3.5
+    # a change must be visible: the mean colour of the region in B differs from A's (both
+    # illumination-matched) by at least this CIE76 ΔE*ab. 2.3 is the just-noticeable
+    # difference; texture left slightly misaligned (vessels, mottling) changes single pixels
+    # but hardly a patch's mean colour, so such residues stay near 1-2 while a new lesion
+    # changes its patch (phantom lesions: 7-13). 0 = no check
+    min_delta_e: float = 3.0
     # a change must be surrounded by compared wall: at least this share of a ring of ring_mm
     # around it must be jointly seen (else it lies on the edge of one session's coverage or
     # of a hole such as the aperture, where the texture is not comparable)
@@ -176,7 +192,9 @@ class CompareConfig:
             "min_diameter_mm >= 0": self.min_diameter_mm >= 0,
             "max_point_distance_mm >= 0": self.max_point_distance_mm >= 0,
             "merge_mm >= 0": self.merge_mm >= 0,
+            "gap_fill_mm >= 0": self.gap_fill_mm >= 0,
             "max_elongation >= 0": self.max_elongation >= 0,
+            "min_delta_e >= 0": self.min_delta_e >= 0,
             "0 <= min_enclosed <= 1": 0 <= self.min_enclosed <= 1,
             "ring_mm > 0": self.ring_mm > 0,
             "max_inconsistency >= 0": self.max_inconsistency >= 0,

@@ -467,6 +467,9 @@ class Difference:
     info: dict[str, Any]
     # (H, W) larger of the two sessions' distances to their nearest SfM point (set by the stage)
     point_distance: np.ndarray | None = None
+    # (H, W) wall B saw (A may not have), and B's colours smoothed (smooth_mm) over it
+    b_seen: np.ndarray | None = None
+    b_smooth: np.ndarray | None = None
 
 
 def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb: np.ndarray,
@@ -539,7 +542,10 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
                           f"a chi(3) variable under Gaussian noise, median {CHI3_MEDIAN})",
         raw_difference_rms=float(np.sqrt(np.mean(delta[joint] ** 2))),
     )
-    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
+    b_wall = grid.hit & b_seen
+    b_smooth = masked_blur_mm(b_rgb, b_wall, grid, sm) if sm > 0 else b_rgb.astype(np.float32)
+    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info,
+                      b_seen=b_wall, b_smooth=b_smooth)
 
 
 def difference_image(diff: Difference) -> np.ndarray:

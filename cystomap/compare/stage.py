@@ -15,8 +15,10 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   (centroid in B's atlas.png), ``pixels`` (comparison-grid pixels), and the checks it
   passed: ``inconsistency`` (photo-consistency in B's frames, empty if not tested),
   ``enclosed`` (share of a ring around it compared), ``luminance_a``/``luminance_b``
-  (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points);
-  sorted by score;
+  (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points),
+  ``elongation`` (length / width), ``observed_share`` (share of the area both sessions
+  saw; below 1 when a strip of unseen wall through the region was bridged) and ``delta_e``
+  (CIE76 ΔE*ab between A's and B's mean colours over the region); sorted by score;
 * ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
   ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
   change, black = not compared (not seen by both, or far from every inlier match);

@@ -235,7 +235,8 @@ CHANGE_TABLE = (
     ("area_mm2", "area", 1, "{u}²"),
     ("azimuth_deg", "azimuth", 0, "°"),
     ("elevation_deg", "elevation", 0, "°"),
-    ("mean_difference", "mean colour difference", 1, "0-255"),
+    ("delta_e", "colour change (ΔE)", 1, ""),
+    ("observed_share", "seen by both", 2, ""),
     ("score", "score (× threshold)", 2, ""),
 )
 

@@ -1,0 +1,126 @@
+"""Change detection (:func:`cystomap.compare.changes.detect`) on a synthetic sphere.
+
+A 40 mm sphere seen from its centre, a comparison grid of about 0.35 mm pixels, wall colour
+with seeded noise in both sessions, and a 20 mm disc of another colour in session B only.
+What a session did not see is cut out of its ``seen`` mask, as the atlases' coverage does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cystomap.atlas.projection import Projection, SurfaceRays
+from cystomap.compare import CompareConfig
+from cystomap.compare.changes import detect, mean_colour_difference, threshold_of
+from cystomap.compare.difference import compute_difference, wall_grid
+
+RADIUS = 40.0
+WALL = np.array([190.0, 120.0, 100.0])
+LESION = np.array([150.0, 70.0, 90.0])
+DIAMETER = 20.0
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80)
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    rays = SurfaceRays(verts, faces)
+    width = round(2 * math.pi * RADIUS / 0.35)
+    proj = Projection("equirectangular", width, width // 2)
+    grid = wall_grid(proj, rays)
+    centre = RADIUS * np.array([math.cos(0.2) * math.cos(0.5), math.cos(0.2) * math.sin(0.5),
+                                math.sin(0.2)])
+    up = np.array([0.0, 0.0, 1.0])
+    up -= centre * (up @ centre) / (centre @ centre)
+    up /= np.linalg.norm(up)
+    return proj, rays, grid, centre, up
+
+
+def _run(sphere, a_unseen, b_unseen, lesion_colour=LESION, noise=2.0, **kw):
+    proj, rays, grid, centre, _ = sphere
+    rng = np.random.default_rng(3)
+    shape = grid.shape
+    pts = np.nan_to_num(grid.points)
+    in_lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < DIAMETER / 2)
+    a = WALL + rng.normal(0, noise, (*shape, 3))
+    b = WALL + rng.normal(0, noise, (*shape, 3))
+    b[in_lesion] = lesion_colour + rng.normal(0, noise, (int(in_lesion.sum()), 3))
+    cfg = CompareConfig(**kw)
+
+    def hint(sig, joint):
+        return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
+
+    diff = compute_difference(grid, b.astype(np.float32), grid.hit & ~b_unseen,
+                              a.astype(np.float32), grid.hit & ~a_unseen, cfg, hint)
+    regions, _ = detect(diff, cfg, proj, rays)
+    return regions
+
+
+def _offset(sphere) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance (mm, along the wall's 'up' through the lesion centre) of each pixel."""
+    _, _, grid, centre, up = sphere
+    return (np.nan_to_num(grid.points) - centre) @ up, grid.hit
+
+
+def test_a_lesion_seen_whole_is_measured(sphere) -> None:
+    none = np.zeros(sphere[2].shape, bool)
+    regions = _run(sphere, none, none)
+    assert len(regions) == 1
+    g = regions[0]
+    assert abs(g.diameter_mm - DIAMETER) < 0.1 * DIAMETER
+    assert np.linalg.norm([g.x, g.y, g.z] - sphere[3]) < 1.0
+    assert g.observed_share == pytest.approx(1.0)
+    assert g.delta_e > 10
+
+
+def test_lesion_cut_by_a_strip_neither_session_saw_is_one_region(sphere) -> None:
+    off, hit = _offset(sphere)
+    strip = hit & (np.abs(off) < 2.0)  # 4 mm band through the centre, unseen by both
+    regions = _run(sphere, strip, strip)
+    assert len(regions) == 1, [r.diameter_mm for r in regions]
+    g = regions[0]
+    assert abs(g.diameter_mm - DIAMETER) < 0.15 * DIAMETER
+    assert np.linalg.norm([g.x, g.y, g.z] - sphere[3]) < 1.5
+    assert g.observed_share < 0.9
+    # without bridging the two halves are separate, each about half the area
+    cut = _run(sphere, strip, strip, gap_fill_mm=0, merge_mm=0, extend_into_unseen=False)
+    assert len(cut) == 2
+    assert max(r.diameter_mm for r in cut) < 0.8 * DIAMETER
+
+
+def test_lesion_running_into_wall_a_missed_is_followed_in_b(sphere) -> None:
+    off, hit = _offset(sphere)
+    a_missed = hit & (off < -3.0)  # A never filmed the wall below; B saw all of it
+    none = np.zeros_like(hit)
+    regions = _run(sphere, a_missed, none)
+    assert len(regions) == 1
+    g = regions[0]
+    assert abs(g.diameter_mm - DIAMETER) < 0.15 * DIAMETER
+    assert np.linalg.norm([g.x, g.y, g.z] - sphere[3]) < 1.5
+    assert 0.2 < g.observed_share < 0.9
+    only_seen = _run(sphere, a_missed, none, extend_into_unseen=False)
+    assert only_seen[0].diameter_mm < 0.9 * DIAMETER
+    assert np.linalg.norm([only_seen[0].x, only_seen[0].y, only_seen[0].z] - sphere[3]) > 2.0
+
+
+def test_faint_patch_is_not_a_change(sphere) -> None:
+    """Far above the (tiny) noise, but its colour moved by about ΔE 1: not visible."""
+    none = np.zeros(sphere[2].shape, bool)
+    faint = WALL + np.array([-3.0, -2.0, 0.0])
+    found = _run(sphere, none, none, lesion_colour=faint, noise=0.3, min_delta_e=0)
+    assert len(found) == 1 and found[0].delta_e < 2
+    assert _run(sphere, none, none, lesion_colour=faint, noise=0.3) == []
+
+
+def test_mean_colour_difference_is_cie76() -> None:
+    w = np.ones(4)
+    same = np.tile(WALL, (4, 1))
+    assert mean_colour_difference(same, same, w) == pytest.approx(0.0, abs=1e-4)
+    # white vs black: L* 100 vs 0
+    assert mean_colour_difference(np.zeros((4, 3)), np.full((4, 3), 255.0), w) == pytest.approx(
+        100.0, abs=0.5)
