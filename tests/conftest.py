@@ -78,7 +78,10 @@ def phantom_config(**phantom) -> dict:
     return {"cameras": {"phantom_half": HALF_CAMERA},
             # lossless: mp4v at 640x360 wipes out the fine texture SfM needs (see PhantomConfig)
             "phantom": {"enabled": True, "camera": "phantom_half", "lossless_video": True, **phantom},
-            "atlas": {"width": 1024, "height": 512}}
+            "atlas": {"width": 1024, "height": 512},
+            # a site marked on session s1's atlas (its centre), found back in s2 by compare
+            "landmarks": [{"subject": "phantom", "session": "s1", "name": "centre", "col": 512,
+                           "row": 256}]}
 
 
 @pytest.fixture(scope="session")

@@ -50,6 +50,8 @@ def test_phantom_study_runs_end_to_end(phantom_study):
     compare = tmp_path / "results/phantom/compare/s1_vs_s2"
     assert json.loads((compare / "registration.json").read_text())["registered"]
     assert list(pd.read_csv(compare / "changes.csv").columns[:4]) == ["id", "x", "y", "z"]
+    marks = pd.read_csv(compare / "landmarks.csv")
+    assert list(marks["name"]) == ["centre"] and list(marks["status"]) == ["ok"]
     assert (tmp_path / "results/phantom/report.html").stat().st_size > 0
     assert wf.planned_jobs() == {}
     try:

@@ -19,7 +19,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", choices=SUITES, action="append", help="run only these suites")
     parser.add_argument("--repeats", type=int, default=3, help="runs per timed step (median reported)")
     parser.add_argument("--work", type=Path, help="scratch directory (default: a temporary one)")
-    parser.add_argument("--seeds", default="7,8,9", help="phantom seeds scored by the pipeline suite")
+    parser.add_argument("--seeds", default="7,8,9",
+                        help="phantom seeds scored by the pipeline and compare suites")
     parser.add_argument("--pairs", default="default,deformed,no_change", help="session pairs of the compare suite")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -44,7 +45,8 @@ def main(argv: list[str] | None = None) -> None:
         if "compare" in suites:
             from cystomap.bench.compare import bench_compare
 
-            rows = bench_compare(work, args.repeats, args.pairs.split(","))
+            rows = [row for seed in args.seeds.split(",")
+                    for row in bench_compare(work, args.repeats, args.pairs.split(","), int(seed))]
             df = write_table(rows, args.out, "compare", "Compare stage on phantom session pairs (1280x720)")
             log.info("compare:\n%s", df.to_string(index=False))
 

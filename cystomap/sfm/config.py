@@ -81,9 +81,12 @@ class SfmConfig:
     # the initial pair needs this many verified matches and this triangulation angle (deg)
     init_min_num_inliers: int = 50
     init_min_tri_angle: float = 4.0
-    # RANSAC threshold (px) and minimum inliers to register a frame by absolute pose
+    # RANSAC threshold (px) and minimum inliers to register a frame by absolute pose. 15
+    # (COLMAP: 30): blurred, weakly textured stretches of lossy video give 15-25 2D-3D
+    # matches; at 25, 3 of 4 mp4v phantom sessions split into 2-4 models, at 15 all four
+    # gave one model of every frame (the final adjustment re-checks every observation)
     abs_pose_max_error_px: float = 12.0
-    abs_pose_min_num_inliers: int = 25
+    abs_pose_min_num_inliers: int = 15
     # global bundle adjustment after the model grew by this ratio (COLMAP's default 1.1);
     # larger = fewer global adjustments, faster
     ba_global_ratio: float = 1.3
@@ -98,6 +101,39 @@ class SfmConfig:
     final_ba_max_iterations: int = 100
     # smaller models (separate pieces) are reported; only the largest is written
     min_model_frames: int = 5
+
+    # --- densification at full size (after mapping, before the final adjustment) ---
+    # corners detected (cv2.goodFeaturesToTrack) at full size in each registered frame are
+    # aligned into the next ``densify_neighbors`` frames where the model predicts them and
+    # added as new tracks (see cystomap/sfm/densify.py): long, precise tracks that SIFT at
+    # max_image_size misses. On the fine-textured phantom (124 frames): trajectory error
+    # 0.30-0.35 -> 0.075-0.10 mm (seeds 0-2) for ~+10-15 s; 200 corners without loop
+    # closure were not enough (0.24 mm). 0 = off. With keyframes every s frames, each frame
+    # gets 1/s of the corners and is aligned to every s-th frame.
+    densify_corners: int = 400
+    densify_neighbors: int = 6
+    # loop closure: each (key)frame's corners are also aligned into this many later frames
+    # beyond that window that share the most (at least densify_loop_min_shared) model points
+    densify_loop_neighbors: int = 3
+    densify_loop_min_shared: int = 15
+    # minimum distance between corners and their quality level (share of the best corner)
+    densify_min_distance_px: float = 10.0
+    densify_quality: float = 0.01
+    # side of the aligned square patches (full-size px, odd) and Gauss-Newton iterations
+    densify_patch_px: int = 15
+    densify_iterations: int = 10
+    # patches with a grey-level standard deviation below this are not aligned
+    densify_min_contrast: float = 2.0
+    # a corner's depth is the median depth of this many nearest model points in its frame
+    densify_depth_neighbors: int = 5
+    # an alignment counts when the patches correlate (ZNCC) at least this well and the
+    # point moved at most this far from its prediction (px)
+    densify_min_zncc: float = 0.8
+    densify_max_shift_px: float = 4.0
+    # a new track needs this many frames (its own included) and must reproject within this
+    # error (px) in all of them after triangulation
+    densify_min_views: int = 3
+    densify_max_reproj_error_px: float = 2.0
 
     # --- failure ---
     # the stage fails when fewer frames than this, or than this share of the frames, register
@@ -174,6 +210,21 @@ class SfmConfig:
         if min(self.ba_local_max_iterations, self.ba_global_max_iterations,
                self.final_ba_max_iterations) < 1:
             problems.append("bundle adjustment iterations must be >= 1")
+        if self.densify_loop_neighbors < 0 or self.densify_loop_min_shared < 1:
+            problems.append("densify_loop_neighbors must be >= 0, densify_loop_min_shared >= 1")
+        if self.densify_corners < 0 or not 0 < self.densify_quality < 1:
+            problems.append("densify_corners must be >= 0 and densify_quality in (0, 1)")
+        if self.densify_patch_px < 3 or self.densify_patch_px % 2 == 0:
+            problems.append("densify_patch_px must be odd and >= 3")
+        if self.densify_iterations < 1 or self.densify_min_contrast < 0:
+            problems.append("densify_iterations must be >= 1 and densify_min_contrast >= 0")
+        if (self.densify_neighbors < 1 or self.densify_depth_neighbors < 1
+                or self.densify_min_views < 2):
+            problems.append("densify_neighbors and densify_depth_neighbors must be >= 1, "
+                            "densify_min_views >= 2")
+        if min(self.densify_min_distance_px, self.densify_max_shift_px,
+               self.densify_max_reproj_error_px) <= 0 or not -1 <= self.densify_min_zncc <= 1:
+            problems.append("densify distances must be > 0 and densify_min_zncc in [-1, 1]")
         if self.min_model_frames < 2 or self.min_registered_frames < 2:
             problems.append("min_model_frames and min_registered_frames must be >= 2")
         if not 0 <= self.min_registered_fraction <= 1:

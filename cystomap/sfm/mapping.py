@@ -1,4 +1,5 @@
-"""Incremental mapping with bundle adjustment (COLMAP), then a final filter-and-adjust pass."""
+"""Incremental mapping with bundle adjustment (COLMAP), densification at full size, then a
+final filter-and-adjust pass."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import cv2
 
 from cystomap.sfm.config import SfmConfig
 
@@ -103,12 +106,17 @@ def keyframes(n: int, stride: int) -> list[int]:
 
 def reconstruct(
     database: Path, color_dir: Path, work_dir: Path, cfg: SfmConfig, calibrated: bool,
-    names: list[str], key: list[int],
+    names: list[str], key: list[int], enhanced_dir: Path | None = None,
+    mask_path: Path | None = None,
 ) -> MappingResult | None:
     """Map the keyframes ``key`` (indices into ``names``) incrementally, register the other
-    frames to that model (pose + triangulation, no local adjustment), then adjust globally.
+    frames to that model (pose + triangulation, no local adjustment), add full-size corner
+    tracks (``densify_corners``; on the frames of ``enhanced_dir`` inside ``mask_path``), then
+    adjust globally.
     ``None`` when no model of at least ``min_model_frames`` was found."""
     import pycolmap
+
+    from cystomap.sfm.densify import densify
 
     pycolmap.set_random_seed(cfg.seed)
     refine = refine_intrinsics(cfg, calibrated)
@@ -129,8 +137,16 @@ def reconstruct(
     added = 0
     if len(key) < len(names):
         added = register_rest(database, rec, names, opts)
+    dense: dict[str, int] = {}
+    if enhanced_dir is not None and cfg.densify_corners > 0:
+        mask = None
+        if mask_path is not None and mask_path.is_file():
+            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        stride = key[1] - key[0] if len(key) > 1 else 1
+        dense = densify(rec, enhanced_dir, mask, cfg, stride).to_dict()
     final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
+    final["densification"] = dense
     models[0] = sorted(rec.image(i).name for i in rec.reg_image_ids())
     return MappingResult(rec, models, final)
 

@@ -3,8 +3,8 @@
 Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
 video-order neighbours + VLAD retrieval neighbours (loop closure); COLMAP matching and
 two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
-refined intrinsics; a final filter-and-adjust pass; metric scale from the known extent or
-volume of the bladder.
+refined intrinsics; densification with corner tracks aligned on the full-size frames; a final
+filter-and-adjust pass; metric scale from the known extent or volume of the bladder.
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ def run_sfm(
             )
         with timer.step("mapping"):
             result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key)
+                                         names, key, enhanced, mask)
         if result is None:
             matched = sum(1 for v in matches.verified_per_image.values() if v)
             raise StageError(

@@ -7,7 +7,7 @@ rule compare:
     output:
         compare=report(
             directory("results/{subject}/compare/{a}_vs_{b}"),
-            patterns=[r"{file,(difference|changes|side_by_side)\.png|changes\.csv}"],
+            patterns=[r"{file,(difference|changes|side_by_side|landmarks)\.png|(changes|landmarks)\.csv}"],
             caption="../report/compare.rst",
             category="Changes",
             subcategory="{subject}",

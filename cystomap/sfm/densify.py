@@ -1,0 +1,330 @@
+"""Densification of a mapped model with full-resolution corner tracks.
+
+SIFT runs on frames reduced to ``max_image_size`` (fast), so its keypoints are few, short-lived
+and only as precise as that working size allows, while the finest texture of the mucosa (and
+of the phantom) is only visible at full size. On the fine-textured phantom the poses of the
+SIFT-only model are then poorly constrained along some directions (the true poses reproject
+the same observations as well as the estimated ones, 0.3 mm apart). With the poses of the
+mapped model, many long, precise tracks are found cheaply by patch alignment on the full-size
+enhanced frames: corners are detected in every registered frame, each is predicted in the
+next ``densify_neighbors`` frames (depth from the nearest model points), aligned there, and
+the corners seen in enough frames are triangulated and added as new tracks.
+
+Alignment: a square patch around the corner is the template, warped into the other frame by
+the local affine map the model predicts (plane through the 3D point facing the reference
+camera); the point in the other frame is moved by Gauss-Newton to where the patches fit best
+(zero-mean, unit-variance patches, so exposure changes do not matter). Poor fits (ZNCC) and
+large shifts are rejected. The caller re-runs bundle adjustment afterwards.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter, OrderedDict, defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from cystomap.errors import InputError
+from cystomap.sfm.config import SfmConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DensifyStats:
+    """What densification added."""
+
+    corners: int  # corners detected (all frames)
+    aligned: int  # corner-to-frame alignments accepted
+    points: int  # new 3D points
+    observations: int  # their observations
+
+    def to_dict(self) -> dict[str, int]:
+        return {"corners": self.corners, "aligned": self.aligned, "points": self.points,
+                "observations": self.observations}
+
+
+class _Frames:
+    """Full-size frames (float32) and their gradients; a small cache."""
+
+    def __init__(self, image_dir: Path, capacity: int = 12) -> None:
+        self.image_dir = image_dir
+        self.capacity = capacity
+        self._cache: OrderedDict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+
+    def get(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if name in self._cache:
+            self._cache.move_to_end(name)
+            return self._cache[name]
+        img = cv2.imread(str(self.image_dir / name), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f"{self.image_dir / name}: cannot read image")
+        img = img.astype(np.float32)
+        ix = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+        iy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+        self._cache[name] = (img, ix, iy)
+        if len(self._cache) > self.capacity:
+            self._cache.popitem(last=False)
+        return img, ix, iy
+
+
+def _grid(patch_px: int) -> tuple[np.ndarray, np.ndarray]:
+    half = patch_px // 2
+    g = np.arange(-half, half + 1, dtype=np.float32)
+    gx, gy = np.meshgrid(g, g)
+    return gx.ravel(), gy.ravel()
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``img`` at (x, y) (OpenCV pixel centres; 2D arrays of equal shape
+    with at most 32767 columns) and whether each sample lies inside the image."""
+    h, w = img.shape
+    inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    val = cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return val, inside
+
+
+def _normalise(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-mean, unit-variance patches (N, K) and their standard deviations."""
+    centred = p - p.mean(axis=1, keepdims=True)
+    std = np.sqrt((centred**2).mean(axis=1, keepdims=True)) + 1e-6
+    return centred / std, std[:, 0]
+
+
+def _project(k: np.ndarray, pose: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP pixels and depths of world points ``xyz`` (N, 3) in a camera (3x4 cam_from_world,
+    or (N, 3, 4) one per point)."""
+    if pose.ndim == 2:
+        cam = xyz @ pose[:, :3].T + pose[:, 3]
+    else:
+        cam = np.einsum("nij,nj->ni", pose[:, :, :3], xyz) + pose[:, :, 3]
+    proj = cam @ k.T
+    return proj[:, :2] / proj[:, 2:3], cam[:, 2]
+
+
+def _unproject(k_inv: np.ndarray, pose: np.ndarray, xy: np.ndarray, depth: np.ndarray
+               ) -> np.ndarray:
+    """World points at ``depth`` along the rays of COLMAP pixels ``xy`` of a camera (3x4)."""
+    cam = (np.c_[xy, np.ones(len(xy))] @ k_inv.T) * depth[:, None]
+    return (cam - pose[:, 3]) @ pose[:, :3]  # R^T (x - t)
+
+
+def _inverse_affines(k: np.ndarray, ref_pose: np.ndarray, tgt_pose: np.ndarray,
+                     xyz: np.ndarray, ref_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of the (N, 2, 2) maps of pixel offsets around the reference points to offsets
+    in the target frames (plane through the 3D point facing the reference camera, poses 3x4
+    or (N, 3, 4)), and whether each map is well-conditioned."""
+    k_inv = np.linalg.inv(k)
+    ref = ref_pose if ref_pose.ndim == 3 else np.repeat(ref_pose[None], len(xyz), 0)
+    depth = np.einsum("nij,nj->ni", ref[:, :, :3], xyz)[:, 2] + ref[:, 2, 3]
+    cols = []
+    base = None
+    for axis in (-1, 0, 1):
+        uv = ref_xy.astype(np.float64).copy()
+        if axis >= 0:
+            uv[:, axis] += 1.0
+        cam = (np.c_[uv, np.ones(len(uv))] @ k_inv.T) * depth[:, None]
+        world = np.einsum("nji,nj->ni", ref[:, :, :3], cam - ref[:, :, 3])
+        px, _ = _project(k, tgt_pose, world)
+        if base is None:
+            base = px
+        else:
+            cols.append(px - base)
+    a, b, c, d = cols[0][:, 0], cols[1][:, 0], cols[0][:, 1], cols[1][:, 1]
+    det = a * d - b * c
+    ok = np.abs(det) > 0.1
+    safe = np.where(ok, det, 1.0)
+    inv = np.stack([np.stack([d, -b], 1), np.stack([-c, a], 1)], 1) / safe[:, None, None]
+    return inv, ok
+
+
+def _templates(img: np.ndarray, ref_cv: np.ndarray, inv: np.ndarray, gx: np.ndarray,
+               gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised templates (N, K) of ``img`` around ``ref_cv`` (OpenCV pixels), sampled at
+    ref + A^-1 g for the target grid g; their contrast and whether they lie inside."""
+    cx = ref_cv[:, 0:1] + inv[:, 0, 0:1] * gx + inv[:, 0, 1:2] * gy
+    cy = ref_cv[:, 1:2] + inv[:, 1, 0:1] * gx + inv[:, 1, 1:2] * gy
+    patch, inside = _sample(img, cx, cy)
+    tpl, std = _normalise(patch)
+    return tpl, std, inside.all(axis=1)
+
+
+def _align(frame: tuple[np.ndarray, np.ndarray, np.ndarray], tpl: np.ndarray,
+           start_cv: np.ndarray, gx: np.ndarray, gy: np.ndarray, iterations: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton on the translation of each patch: positions (OpenCV pixels), ZNCC of the
+    final fit, and whether the patch stayed inside the frame."""
+    img, ix, iy = frame
+    pos = start_cv.astype(np.float32).copy()
+    live = np.ones(len(pos), dtype=bool)
+    for _ in range(iterations):
+        px = pos[:, 0:1] + gx
+        py = pos[:, 1:2] + gy
+        val, inside = _sample(img, px, py)
+        dx, _ = _sample(ix, px, py)
+        dy, _ = _sample(iy, px, py)
+        live &= inside.all(axis=1)
+        mean = val.mean(axis=1, keepdims=True)
+        std = np.sqrt(((val - mean) ** 2).mean(axis=1, keepdims=True)) + 1e-6
+        resid = (val - mean) / std - tpl
+        gxn = (dx - dx.mean(axis=1, keepdims=True)) / std
+        gyn = (dy - dy.mean(axis=1, keepdims=True)) / std
+        a11 = (gxn * gxn).sum(1)
+        a12 = (gxn * gyn).sum(1)
+        a22 = (gyn * gyn).sum(1)
+        b1 = -(gxn * resid).sum(1)
+        b2 = -(gyn * resid).sum(1)
+        det = a11 * a22 - a12 * a12
+        safe = np.where(det > 1e-9, det, np.inf)
+        step = np.stack([(a22 * b1 - a12 * b2) / safe, (a11 * b2 - a12 * b1) / safe], 1)
+        step = np.clip(step, -1.0, 1.0) * live[:, None]
+        pos += step
+        if np.abs(step).max(initial=0.0) < 1e-3:
+            break
+    val, inside = _sample(img, pos[:, 0:1] + gx, pos[:, 1:2] + gy)
+    zncc = (_normalise(val)[0] * tpl).mean(axis=1)
+    return pos.astype(np.float64), zncc, live & inside.all(axis=1)
+
+
+def _model_arrays(rec: Any) -> tuple[list[int], dict[int, str], dict[int, np.ndarray],
+                                      dict[int, np.ndarray]]:
+    """Registered image ids in name (video) order, their names, poses (3x4) and K."""
+    ids = sorted(rec.reg_image_ids(), key=lambda i: rec.image(i).name)
+    names = {i: rec.image(i).name for i in ids}
+    poses = {i: np.asarray(rec.image(i).cam_from_world().matrix(), dtype=np.float64)
+             for i in ids}
+    ks = {i: np.asarray(rec.camera(rec.image(i).camera_id).calibration_matrix(),
+                        dtype=np.float64) for i in ids}
+    return ids, names, poses, ks
+
+
+def _triangulate(ps: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of tracks of equal length: projection matrices (N, V, 3, 4)
+    (K applied) and COLMAP pixels (N, V, 2) -> (N, 3)."""
+    a = np.concatenate([xy[..., 0:1] * ps[:, :, 2] - ps[:, :, 0],
+                        xy[..., 1:2] * ps[:, :, 2] - ps[:, :, 1]], axis=1)
+    _, _, vt = np.linalg.svd(a)
+    h = vt[:, -1]
+    return h[:, :3] / h[:, 3:4]
+
+
+def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
+            stride: int = 1) -> DensifyStats:
+    """Add full-size corner tracks to ``rec`` (see the module docstring); in place.
+
+    With keyframes every ``stride`` frames (dense video), each frame gets 1/stride of the
+    corners and is aligned to every ``stride``-th following frame, so the cost and the
+    baselines of the tracks stay those of the keyframes. Each keyframe's corners are also
+    aligned into the ``densify_loop_neighbors`` later frames beyond that window that share the
+    most model points with it (loop closures, against drift)."""
+    import pycolmap
+
+    gx, gy = _grid(cfg.densify_patch_px)
+    half = cfg.densify_patch_px // 2
+    ids, names, poses, ks = _model_arrays(rec)
+    stride = max(1, stride)
+    n_wanted = max(1, round(cfg.densify_corners / stride))
+    frames = _Frames(image_dir, capacity=cfg.densify_neighbors * stride + 3)
+    margin = half + 2
+    if mask is not None:
+        valid = cv2.erode((mask > 127).astype(np.uint8) * 255, np.ones((2 * margin + 1,) * 2,
+                                                                        np.uint8))
+    else:
+        valid = None
+    order = {i: n for n, i in enumerate(ids)}
+    shared: dict[int, Counter[int]] = defaultdict(Counter)  # model points two frames share
+    for point in rec.points3D.values():
+        seen = {e.image_id for e in point.track.elements if e.image_id in order}
+        for i in seen:
+            shared[i].update(seen - {i})
+    window = cfg.densify_neighbors * stride
+    n_corners = n_aligned = 0
+    tracks: list[list[tuple[int, np.ndarray]]] = []  # per new point: (image id, xy COLMAP)
+    for n, ref_id in enumerate(ids):
+        targets = ids[n + stride:: stride][: cfg.densify_neighbors]
+        if n % stride == 0:  # keyframes only: far frames are not cached, reading them is slow
+            loops = [j for j, c in shared[ref_id].most_common()
+                     if order[j] > n + window and c >= cfg.densify_loop_min_shared]
+            targets += loops[: cfg.densify_loop_neighbors]
+        if not targets:
+            continue
+        img = frames.get(names[ref_id])[0]
+        h, w = img.shape
+        if valid is None:
+            valid = np.zeros((h, w), np.uint8)
+            valid[margin:h - margin, margin:w - margin] = 255
+        corners = cv2.goodFeaturesToTrack(img, n_wanted, cfg.densify_quality,
+                                          cfg.densify_min_distance_px, mask=valid, blockSize=5)
+        if corners is None:
+            continue
+        cv_xy = corners.reshape(-1, 2).astype(np.float64)
+        xy = cv_xy + 0.5
+        # depth of each corner: median depth of the nearest model points seen in this frame
+        image = rec.image(ref_id)
+        pts = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
+        if len(pts) < 3:
+            continue
+        pxy = np.array([p[0] for p in pts])
+        _, pdepth = _project(ks[ref_id], poses[ref_id], np.array([p[1] for p in pts]))
+        d2 = ((xy[:, None, :] - pxy[None]) ** 2).sum(-1)
+        near = np.argsort(d2, axis=1)[:, : min(cfg.densify_depth_neighbors, len(pts))]
+        depth = np.median(pdepth[near], axis=1)
+        xyz = _unproject(np.linalg.inv(ks[ref_id]), poses[ref_id], xy, depth)
+        n_corners += len(xy)
+        found: list[list[tuple[int, np.ndarray]]] = [[(ref_id, xy[c])] for c in range(len(xy))]
+        for tgt_id in targets:
+            pred, z = _project(ks[tgt_id], poses[tgt_id], xyz)
+            inv, ok = _inverse_affines(ks[ref_id], poses[ref_id], poses[tgt_id], xyz, xy)
+            ok &= (z > 0) & (pred[:, 0] > margin) & (pred[:, 1] > margin)
+            ok &= (pred[:, 0] < w - margin) & (pred[:, 1] < h - margin)
+            sel = np.nonzero(ok)[0]
+            if not len(sel):
+                continue
+            tpl, std, inside = _templates(img, cv_xy[sel], inv[sel], gx, gy)
+            keep = inside & (std > cfg.densify_min_contrast)
+            sel, tpl = sel[keep], tpl[keep]
+            if not len(sel):
+                continue
+            start = pred[sel] - 0.5
+            pos, zncc, live = _align(frames.get(names[tgt_id]), tpl, start, gx, gy,
+                                     cfg.densify_iterations)
+            shift = np.linalg.norm(pos - start, axis=1)
+            accept = live & (zncc >= cfg.densify_min_zncc) & (shift <= cfg.densify_max_shift_px)
+            for c, p in zip(sel[accept], pos[accept] + 0.5, strict=True):
+                found[c].append((tgt_id, p))
+            n_aligned += int(accept.sum())
+        tracks.extend(t for t in found if len(t) >= cfg.densify_min_views)
+
+    # triangulate (grouped by track length), keep tracks that reproject well, add them
+    n_points = n_obs = 0
+    by_len: dict[int, list[list[tuple[int, np.ndarray]]]] = defaultdict(list)
+    for t in tracks:
+        by_len[len(t)].append(t)
+    proj = {i: ks[i] @ poses[i] for i in ids}
+    for length, group in by_len.items():
+        ps = np.array([[proj[i] for i, _ in t] for t in group])
+        xy = np.array([[p for _, p in t] for t in group])
+        xyz = _triangulate(ps, xy)
+        h4 = np.c_[xyz, np.ones(len(xyz))]
+        rep = np.einsum("nvij,nj->nvi", ps, h4)
+        err = np.linalg.norm(rep[..., :2] / rep[..., 2:3] - xy, axis=2)
+        good = (rep[..., 2] > 0).all(1) & (err.max(1) <= cfg.densify_max_reproj_error_px)
+        for t, point in zip((g for g, k in zip(group, good, strict=True) if k), xyz[good],
+                            strict=True):
+            track = pycolmap.Track()
+            for image_id, p in t:
+                image = rec.image(image_id)
+                image.points2D.append(pycolmap.Point2D(p))
+                track.add_element(image_id, image.num_points2D() - 1)
+            rec.add_point3D(point, track)
+            n_points += 1
+            n_obs += length
+    stats = DensifyStats(n_corners, n_aligned, n_points, n_obs)
+    log.info("densification: %d corners at full size, %d alignments, %d points with %d "
+             "observations added", n_corners, n_aligned, n_points, n_obs)
+    return stats
