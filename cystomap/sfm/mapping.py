@@ -34,7 +34,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     import pycolmap
 
     o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = cfg.num_threads
+    o.num_threads = cfg.mapping_threads
     o.random_seed = cfg.seed
     o.multiple_models = True
     o.min_model_size = cfg.min_model_frames
@@ -49,7 +49,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
     o.ba_global_max_num_iterations = cfg.ba_global_max_iterations
     m = o.mapper
-    m.num_threads = cfg.num_threads
+    m.num_threads = cfg.mapping_threads
     m.random_seed = cfg.seed
     m.init_min_num_inliers = cfg.init_min_num_inliers
     m.init_min_tri_angle = cfg.init_min_tri_angle
@@ -199,7 +199,7 @@ def bundle_options(cfg: SfmConfig, refine: bool, iterations: int) -> Any:
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.SOFT_L1
     ba.ceres.loss_function_scale = 1.0
     so = ba.ceres.solver_options
-    so.num_threads = cfg.num_threads
+    so.num_threads = cfg.mapping_threads
     so.max_num_iterations = iterations
     so.function_tolerance = 1e-7
     return ba
