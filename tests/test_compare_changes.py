@@ -15,7 +15,7 @@ import pytest
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare import CompareConfig
 from cystomap.compare.changes import detect, mean_colour_difference, threshold_of
-from cystomap.compare.difference import compute_difference, wall_grid
+from cystomap.compare.difference import compute_difference, painted_b, wall_grid
 
 RADIUS = 40.0
 WALL = np.array([190.0, 120.0, 100.0])
@@ -55,8 +55,10 @@ def _run(sphere, a_unseen, b_unseen, lesion_colour=LESION, noise=2.0, **kw):
     def hint(sig, joint):
         return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
 
-    diff = compute_difference(grid, b.astype(np.float32), grid.hit & ~b_unseen,
+    b_seen = grid.hit & ~b_unseen
+    diff = compute_difference(grid, b.astype(np.float32), b_seen,
                               a.astype(np.float32), grid.hit & ~a_unseen, cfg, hint)
+    painted_b(diff, np.dstack([b, b_seen]).astype(np.float32), cfg.smooth_mm)
     regions, _ = detect(diff, cfg, proj, rays)
     return regions
 

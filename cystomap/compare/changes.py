@@ -30,8 +30,8 @@ compared wall stops where either session's coverage does. Pieces of one change o
 of an unseen strip narrower than ``gap_fill_mm`` are one region, and its outline is closed
 across the strip. Where a change runs into wall that B saw but A did not
 (``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
-from the surrounding wall's colour to the region's, up to the region's own diameter
-further): the region is measured as B shows it, and ``observed_share`` says how much of it
+from the surrounding wall's colour to the region's, up to twice the compared part's
+equivalent diameter further): the region is measured as B shows it, and ``observed_share`` says how much of it
 was compared. A change must also be visible: the CIE76 ΔE*ab between A's and B's mean
 colours over it at least ``min_delta_e`` (registration residue of fine texture changes single
 pixels, not a patch's mean colour). Regions that end up describing the same wall (both
@@ -201,7 +201,7 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     """``outline`` grown over adjoining wall that B saw but that was not compared (A did not
     see it, or it is in the edge margin) where B's smoothed colour is at least half-way from
     the surrounding wall's colour to the region's: the part of a change that lies on wall
-    A missed. It grows at most the region's own equivalent diameter, and across strips of
+    A missed. It grows at most twice the compared part's equivalent diameter, and across strips of
     wall B did not see either when narrower than ``gap_kernel`` (sub-window arrays).
     """
     import cv2
@@ -223,8 +223,10 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     cand = eligible & (t >= 0.5)
     if open_px >= 0.5:
         cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_OPEN, _disc(open_px)) > 0
+    # the compared part may be a small cap of a large change: follow it up to twice the
+    # cap's own equivalent diameter
     reach = cv2.dilate(outline.astype(np.uint8),
-                       _disc(math.sqrt(4 * float(seen.sum()) / math.pi))) > 0
+                       _disc(2 * math.sqrt(4 * float(seen.sum()) / math.pi))) > 0
     grown = outline | (cand & reach)
     link = grown
     if gap_kernel is not None:  # across strips of wall B did not see either
@@ -236,7 +238,7 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     kept = np.isin(lab, keep) & grown
     if gap_kernel is not None:
         closed = cv2.morphologyEx(kept.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
-        kept |= closed & unseen
+        kept |= closed & ~sub_joint & sub_hit  # only where nothing was compared
     return _fill_holes(kept) & sub_hit
 
 

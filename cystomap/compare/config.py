@@ -28,6 +28,10 @@ class CompareConfig:
     keypoint_size_mm: float = 1.2
     # at most this many observations per point are described (the closest views)
     max_observations: int = 6
+    # at most this many points per session take part, spread evenly over the wall (one per
+    # cell of a voxel grid, the longest track); densified SfM clouds hold 20k+ points, which
+    # cost time (descriptors, matching, MSAC, spline) but add no accuracy (0 = all)
+    max_points: int = 6000
 
     # --- matching and robust transform ---
     # Lowe's ratio test on the nearest / second nearest descriptor distance; matches must
@@ -117,7 +121,7 @@ class CompareConfig:
     gap_fill_mm: float = 6.0
     # a change that runs into wall B saw but A did not (or the edge margin) is followed there
     # on B's colours (where they are at least half-way from the surrounding wall's to the
-    # region's, up to the region's own diameter further): its size and centroid are B's,
+    # region's, up to twice the compared part's diameter further): its size and centroid are B's,
     # not only those of the compared part; observed_share says how much was compared
     extend_into_unseen: bool = True
     # a change must lie on reconstructed wall: the median distance from its pixels to the
@@ -170,6 +174,7 @@ class CompareConfig:
             "max_reprojection_error_px >= 0": self.max_reprojection_error_px >= 0,
             "keypoint_size_mm > 0": self.keypoint_size_mm > 0,
             "max_observations >= 1": self.max_observations >= 1,
+            "max_points >= 0": self.max_points >= 0,
             "0 < ratio <= 1": 0 < self.ratio <= 1,
             "inlier_mm > 0": self.inlier_mm > 0,
             "msac_iterations >= 10": self.msac_iterations >= 10,

@@ -467,7 +467,8 @@ class Difference:
     info: dict[str, Any]
     # (H, W) larger of the two sessions' distances to their nearest SfM point (set by the stage)
     point_distance: np.ndarray | None = None
-    # (H, W) wall B saw (A may not have), and B's colours smoothed (smooth_mm) over it
+    # (H, W) wall B's atlas shows (from any number of frames; A may not have seen it), and
+    # B's colours smoothed (smooth_mm) over it; set by painted_b
     b_seen: np.ndarray | None = None
     b_smooth: np.ndarray | None = None
 
@@ -542,10 +543,19 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
                           f"a chi(3) variable under Gaussian noise, median {CHI3_MEDIAN})",
         raw_difference_rms=float(np.sqrt(np.mean(delta[joint] ** 2))),
     )
-    b_wall = grid.hit & b_seen
-    b_smooth = masked_blur_mm(b_rgb, b_wall, grid, sm) if sm > 0 else b_rgb.astype(np.float32)
-    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info,
-                      b_seen=b_wall, b_smooth=b_smooth)
+    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
+
+
+def painted_b(diff: Difference, rgba_b: np.ndarray, smooth_mm: float) -> None:
+    """Set ``diff.b_seen`` / ``diff.b_smooth`` from B's atlas at the grid's size (RGBA, alpha
+    0..1) painted from any number of frames: where a change is followed beyond the compared
+    wall (see :mod:`cystomap.compare.changes`), one view of B is enough to see it."""
+    grid = diff.grid
+    seen = grid.hit & (rgba_b[..., 3] > 0.999)
+    rgb = rgba_b[..., :3]
+    diff.b_seen = seen
+    diff.b_smooth = (masked_blur_mm(rgb, seen, grid, smooth_mm) if smooth_mm > 0
+                     else rgb.astype(np.float32))
 
 
 def difference_image(diff: Difference) -> np.ndarray:

@@ -71,20 +71,47 @@ def _image_size(enhanced: Path, name: str) -> tuple[int, int] | None:
     return None if img is None else (img.shape[1], img.shape[0])
 
 
+def spread_subset(xyz: np.ndarray, track: np.ndarray, n: int) -> np.ndarray:
+    """Indices of at most ``n`` points spread evenly over the cloud: one per cell of a
+    voxel grid (the point with the longest track), the cell size chosen so that about ``n``
+    cells are occupied. Deterministic."""
+    if len(xyz) <= n:
+        return np.arange(len(xyz))
+    span = float(np.ptp(xyz, axis=0).max()) or 1.0
+    lo, hi = span / 4096, span
+    best = None
+    for _ in range(30):  # bisection on the cell size (occupied cells fall as it grows)
+        mid = math.sqrt(lo * hi)
+        cells = np.floor((xyz - xyz.min(axis=0)) / mid).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        if len(first) > n:
+            lo = mid
+        else:
+            hi, best = mid, mid
+        if hi / lo < 1.01:
+            break
+    cells = np.floor((xyz - xyz.min(axis=0)) / (best or hi)).astype(np.int64)
+    order = np.lexsort((np.arange(len(xyz)), -track))  # longest tracks first, stable
+    _, first = np.unique(cells[order], axis=0, return_index=True)
+    return np.sort(order[first])
+
+
 def collect_observations(
     sfm_dir: Path, preprocessed_dir: Path, keypoint_size_mm: float, min_track_length: int,
-    max_reprojection_error_px: float, max_observations: int,
+    max_reprojection_error_px: float, max_observations: int, max_points: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, list[_Obs], int]:
-    """Kept points (ids, xyz) and, per image, the observations to describe."""
+    """Kept points (ids, xyz) and, per image, the observations to describe; at most
+    ``max_points`` (0 = all) spread evenly over the wall (:func:`spread_subset`)."""
     rec = load_reconstruction(Path(sfm_dir))
     enhanced = Path(preprocessed_dir) / "enhanced"
     if not enhanced.is_dir():
         raise InputError(f"{enhanced}: enhanced frames not found")
     n_model = len(rec.points3D)
-    ids, xyz, keep = [], [], []
+    ids, xyz, keep, tracks = [], [], [], []
     for pid, p in rec.points3D.items():
         ids.append(pid)
         xyz.append(p.xyz)
+        tracks.append(p.track.length())
         ok = p.track.length() >= min_track_length
         if max_reprojection_error_px > 0 and p.has_error() and p.error > max_reprojection_error_px:
             ok = False
@@ -93,6 +120,10 @@ def collect_observations(
     xyz_a = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     keep_a = np.asarray(keep, dtype=bool)
     ids_a, xyz_a = ids_a[keep_a], xyz_a[keep_a]
+    if max_points > 0 and len(ids_a) > max_points:
+        sub = spread_subset(xyz_a, np.asarray(tracks)[keep_a], max_points)
+        log.info("%s: %d of %d points kept, spread over the wall", sfm_dir, len(sub), len(ids_a))
+        ids_a, xyz_a = ids_a[sub], xyz_a[sub]
     row_of = {int(i): r for r, i in enumerate(ids_a)}
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     size_cache: dict[int, tuple[int, int] | None] = {}
@@ -260,7 +291,7 @@ def describe_image(path: Path, obs: _Obs) -> tuple[np.ndarray, np.ndarray]:
 def point_features(
     sfm_dir: Path, preprocessed_dir: Path, keypoint_size_mm: float = 1.2,
     min_track_length: int = 2, max_reprojection_error_px: float = 4.0,
-    max_observations: int = 6, threads: int = 2,
+    max_observations: int = 6, threads: int = 2, max_points: int = 0,
 ) -> PointFeatures:
     """Mean RootSIFT descriptor of every kept 3-D point of the model in ``sfm_dir``."""
     import cv2
@@ -268,7 +299,7 @@ def point_features(
     enhanced = Path(preprocessed_dir) / "enhanced"
     ids, xyz, obs, n_model = collect_observations(
         sfm_dir, preprocessed_dir, keypoint_size_mm, min_track_length,
-        max_reprojection_error_px, max_observations)
+        max_reprojection_error_px, max_observations, max_points)
     acc = np.zeros((len(ids), 128), np.float64)
     count = np.zeros(len(ids), np.int64)
     old_threads = cv2.getNumThreads()

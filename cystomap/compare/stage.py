@@ -59,6 +59,7 @@ from cystomap.compare.difference import (
     compose,
     compute_difference,
     difference_image,
+    painted_b,
     refine_flow,
     wall_grid,
     warp_points,
@@ -122,9 +123,11 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
 
     t = t0
     fa = point_features(a.sfm, a.preprocessed, cfg.keypoint_size_mm, cfg.min_track_length,
-                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads)
+                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads,
+                        cfg.max_points)
     fb = point_features(b.sfm, b.preprocessed, cfg.keypoint_size_mm, cfg.min_track_length,
-                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads)
+                        cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads,
+                        cfg.max_points)
     t = lap("descriptors", t)
     reg = register(fa.xyz, fa.desc, fb.xyz, fb.desc, cfg)
     t = lap("registration", t)
@@ -287,6 +290,8 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
         return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
 
     diff = compute_difference(grid, b_rgb, b_seen, a_rgb, a_seen > 0.999, cfg, hint)
+    if cfg.extend_into_unseen:
+        painted_b(diff, atlas_b.scaled(scale, 0)[1] if cfg.min_views > 1 else rgba_b, cfg.smooth_mm)
     diff.point_distance = point_dist
     info = {"grid": {"width": shape[1], "height": shape[0],
                      "mm_per_px": grid.mm_per_px_y},
