@@ -126,3 +126,17 @@ def test_mean_colour_difference_is_cie76() -> None:
     # white vs black: L* 100 vs 0
     assert mean_colour_difference(np.zeros((4, 3)), np.full((4, 3), 255.0), w) == pytest.approx(
         100.0, abs=0.5)
+
+
+def test_lesion_near_the_pole_is_measured_once(sphere) -> None:
+    """Near the atlas's pole a disc spans most columns of the grid: its window must not wrap
+    onto itself (pixels counted twice made a 30 mm lesion 51 mm)."""
+    proj, rays, grid, _, up = sphere
+    el, az = math.radians(84.0), 0.3
+    centre = RADIUS * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                                math.sin(el)])
+    none = np.zeros(grid.shape, bool)
+    regions = _run((proj, rays, grid, centre, up), none, none)
+    assert len(regions) == 1
+    assert abs(regions[0].diameter_mm - DIAMETER) < 0.1 * DIAMETER
+    assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.0

@@ -4,13 +4,13 @@ Threshold (``threshold_k``): the per-pixel significance (whitened, smoothed colo
 difference; see :mod:`cystomap.compare.difference`) has a heavy tail even without any change
 (registration jitter of vessels, atlas seams), so no Gaussian quantile is trusted. Its
 robust level on the compared wall is measured instead: ``T = median + k · 1.4826 · MAD``.
-k = 15 was set from pairs without change (phantom session 1 against a re-render of the same
-bladder along another path and with another illumination gain): the largest spurious region
-there peaked 12.6 MADs above the median with full SfM coverage, up to 15 with partial SfM
-models. Regions start at pixels above ``T`` and grow over the connected pixels above
-``grow_fraction · T`` (hysteresis), are cleaned by a morphological closing and opening
-(``morphology_mm``), pieces closer than ``merge_mm`` are joined, and a region must be at
-least the area of a disc of ``min_diameter_mm``.
+k = 8: spurious regions are kept out by the checks below (visibility, patch shape), so k only
+has to separate candidates from noise (k = 15 missed 5 of 6 lesions on a seed-8 pair whose
+noise tail is heavier; see ``CompareConfig.threshold_k``). Regions start at pixels above
+``T`` and grow over the connected pixels above ``grow_fraction · T`` (hysteresis), are
+cleaned by a morphological closing and opening (``morphology_mm``), pieces closer than
+``merge_mm`` are joined, and a region must be at least the area of a disc of
+``min_diameter_mm``.
 
 Checks (each counted in ``compare.json``): the region lies on reconstructed wall (median
 distance to the nearest SfM point of each session ≤ ``max_point_distance_mm``), is mostly
@@ -334,8 +334,11 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         if flat_area[px].sum() < min_area:
             dropped_small += 1
             continue
-        peak = float(np.percentile(flat_sig[px], 95))
         top = float(flat_sig[px].max())
+        # the outline is drawn on the significance without the resolution tolerance, whose
+        # blurring lowers a small change's peak more than its flanks (a wider half-maximum)
+        outline_sig = sig if diff.significance_plain is None else diff.significance_plain
+        peak = float(np.percentile(outline_sig.ravel()[px], 95))
         # FWHM outline: within the region's bounding box (grown by its own size), pixels above
         # half the peak that touch the region, holes filled
         rows, cols = px // w, px % w
@@ -345,12 +348,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         size_px = max(np.ptp(rows), np.ptp(ucols))
         pad = int(size_px if cfg.extend_into_unseen else np.ceil(size_px / 2)) + 3 + ring_px
         r_lo, r_hi = max(0, rows.min() - pad), min(h, rows.max() + pad + 1)
-        c_idx = np.arange(ucols.min() - pad, ucols.max() + pad + 1) % w
-        sub_sig = sig[r_lo:r_hi][:, c_idx]
+        pad_c = max(0, min(pad, (w - 1 - int(np.ptp(ucols))) // 2))  # at most one turn
+        c_lo = ucols.min() - pad_c
+        c_idx = np.arange(c_lo, ucols.max() + pad_c + 1) % w
+        sub_sig = outline_sig[r_lo:r_hi][:, c_idx]
         sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
         half = sub_joint & (sub_sig >= 0.5 * peak)
         core = np.zeros_like(half)
-        core[rows - r_lo, ucols - (ucols.min() - pad)] = True
+        core[rows - r_lo, ucols - c_lo] = True
         _, sub_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
         keep = np.unique(sub_lab[core & half])
         keep = keep[keep > 0]

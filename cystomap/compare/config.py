@@ -99,12 +99,14 @@ class CompareConfig:
     # threshold = median + threshold_k × 1.4826 · MAD of the per-pixel significance (the
     # smoothed colour difference whitened by its robust colour covariance) on the compared
     # wall: the pair's own noise level. Registration jitter and atlas seams give that
-    # significance a heavy tail, so k is set from pairs without any change (phantom
-    # session 1 against a re-render of the same bladder along another path, with another
-    # illumination gain): their largest spurious region peaked 12.6 MADs above the median
-    # with full SfM coverage (200 frames), up to 15 where SfM registered only part of the
-    # frames (124 frames). k = 15 keeps those out.
-    threshold_k: float = 15.0
+    # significance a heavy tail. k alone once had to keep spurious regions out (k = 15: the
+    # largest in pairs without change peaked 12.6-15 MADs up); since regions must also be
+    # visible (min_delta_e) and patches (max_elongation), k only has to separate candidates
+    # from noise. Measured on full-size pairs of seeds 7 and 8 (default, 7 % deformed, no
+    # change): k = 15 found 1 of 6 lesions on seed 8, whose pair has a heavier noise tail (a
+    # colour imbalance between the sessions; lesions peaked 16-30 MADs up); k = 8 found every
+    # lesion on wall both sessions registered, with no false positive on either no-change pair.
+    threshold_k: float = 8.0
     # a region starts at a pixel above the threshold and grows over the connected pixels
     # above grow_fraction × the threshold (hysteresis); it is measured where it exceeds half
     # of its own peak (95th percentile), the full-width-at-half-maximum outline
@@ -133,10 +135,11 @@ class CompareConfig:
     max_elongation: float = 3.5
     # a change must be visible: the mean colour of the region in B differs from A's (both
     # illumination-matched) by at least this CIE76 ΔE*ab. 2.3 is the just-noticeable
-    # difference; texture left slightly misaligned (vessels, mottling) changes single pixels
-    # but hardly a patch's mean colour, so such residues stay near 1-2 while a new lesion
-    # changes its patch (phantom lesions: 7-13). 0 = no check
-    min_delta_e: float = 3.0
+    # difference, 3.5-5 one an untrained observer notices; texture left slightly misaligned
+    # (vessels, mottling) changes single pixels but hardly a patch's mean colour (spurious
+    # regions on phantom pairs without change: 1.6-3.5) while a new lesion changes its patch
+    # (phantom lesions: 6.8-13). 0 = no check
+    min_delta_e: float = 4.0
     # a change must be surrounded by compared wall: at least this share of a ring of ring_mm
     # around it must be jointly seen (else it lies on the edge of one session's coverage or
     # of a hole such as the aperture, where the texture is not comparable)
