@@ -109,7 +109,7 @@ class CompareConfig:
     threshold_k: float = 8.0
     # a region starts at a pixel above the threshold and grows over the connected pixels
     # above grow_fraction × the threshold (hysteresis); it is measured where it exceeds half
-    # of its own peak (95th percentile), the full-width-at-half-maximum outline
+    # of its own peak (99th percentile), the full-width-at-half-maximum outline
     grow_fraction: float = 0.5
     # regions smaller than a disc of this diameter (model units) are dropped
     min_diameter_mm: float = 3.0

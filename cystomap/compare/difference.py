@@ -467,9 +467,6 @@ class Difference:
     info: dict[str, Any]
     # (H, W) larger of the two sessions' distances to their nearest SfM point (set by the stage)
     point_distance: np.ndarray | None = None
-    # (H, W) significance of B against A without the resolution tolerance (for outlines: the
-    # tolerance lowers a small change's peak more than its flanks)
-    significance_plain: np.ndarray | None = None
     # (H, W) wall B's atlas shows (from any number of frames; A may not have seen it), and
     # B's colours smoothed (smooth_mm) over it; set by painted_b
     b_seen: np.ndarray | None = None
@@ -523,12 +520,10 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
             return np.sqrt(np.maximum(np.einsum("hwi,ij,hwj->hw", d, inv, d), 0))
 
         sig = maha(smooth)
-        plain = sig.copy()
         for k in range(1, len(blurs)):
             sig = np.minimum(sig, maha(sb[0] - sa[k]))
             sig = np.minimum(sig, maha(sb[k] - sa[0]))
         sig[~joint] = 0
-        plain[~joint] = 0
         if round_ == 0 and cfg.illumination_mm > 0:
             # leave clearly changed wall (and a margin) out of the illumination field
             flagged = joint & (sig > hint(sig, joint))
@@ -548,8 +543,7 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
                           f"a chi(3) variable under Gaussian noise, median {CHI3_MEDIAN})",
         raw_difference_rms=float(np.sqrt(np.mean(delta[joint] ** 2))),
     )
-    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info,
-                      significance_plain=plain)
+    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
 
 
 def painted_b(diff: Difference, rgba_b: np.ndarray, smooth_mm: float) -> None:

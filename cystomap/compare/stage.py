@@ -11,7 +11,7 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   elevation_deg`` (about B's atlas barycentre, B's atlas axes), ``area_mm2`` (wall area),
   ``diameter_mm`` (sqrt(4 area / π)), ``mean_difference`` (mean colour difference, 0-255 RGB
   units), ``score`` (largest significance in the region / threshold, > 1),
-  ``peak_significance`` (95th percentile), ``mean_significance`` (noise units), ``atlas_col, atlas_row``
+  ``peak_significance`` (99th percentile), ``mean_significance`` (noise units), ``atlas_col, atlas_row``
   (centroid in B's atlas.png), ``pixels`` (comparison-grid pixels), and the checks it
   passed: ``inconsistency`` (photo-consistency in B's frames, empty if not tested),
   ``enclosed`` (share of a ring around it compared), ``luminance_a``/``luminance_b``
