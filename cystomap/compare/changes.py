@@ -31,8 +31,8 @@ of an unseen strip narrower than ``gap_fill_mm`` are one region, and its outline
 across the strip. Where a change runs into wall that B saw but A did not
 (``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
 from the surrounding wall's colour to the region's, up to twice the compared part's
-equivalent diameter further): the region is measured as B shows it, and ``observed_share`` says how much of it
-was compared. A change must also be visible: the CIE76 ΔE*ab between A's and B's mean
+equivalent diameter further): the region is measured as B shows it, and ``observed_share``
+says how much of it was compared. A change must also be visible: the CIE76 ΔE*ab between A's and B's mean
 colours over it at least ``min_delta_e`` (registration residue of fine texture changes single
 pixels, not a patch's mean colour). Regions that end up describing the same wall (both
 pieces of a cut change followed into the gap) are reported once.
@@ -206,8 +206,8 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     """``outline`` grown over adjoining wall that B saw but that was not compared (A did not
     see it, or it is in the edge margin) where B's smoothed colour is at least half-way from
     the surrounding wall's colour to the region's: the part of a change that lies on wall
-    A missed. It grows at most twice the compared part's equivalent diameter, and across strips of
-    wall B did not see either when narrower than ``gap_kernel`` (sub-window arrays).
+    A missed. It grows at most twice the compared part's equivalent diameter, and across
+    strips of wall B did not see either when narrower than ``gap_kernel`` (sub-window arrays).
     """
     import cv2
 
@@ -242,9 +242,18 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     keep = keep[keep > 0]
     kept = np.isin(lab, keep) & grown
     if gap_kernel is not None:
-        closed = cv2.morphologyEx(kept.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
-        kept |= closed & ~sub_joint & sub_hit  # only where nothing was compared
+        return _close_across(kept, gap_kernel, sub_joint, sub_hit)
     return _fill_holes(kept) & sub_hit
+
+
+def _close_across(mask: np.ndarray, kernel: np.ndarray, compared: np.ndarray,
+                  wall: np.ndarray) -> np.ndarray:
+    """``mask`` closed by ``kernel`` across wall that was not compared (an unseen strip), holes
+    filled: compared wall keeps the verdict of its own significance."""
+    import cv2
+
+    closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0
+    return _fill_holes(mask | (closed & ~compared & wall)) & wall
 
 
 def threshold(diff: Difference, k: float) -> tuple[float, dict[str, float]]:
@@ -324,8 +333,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     h, w = grid.shape
     pdist = diff.point_distance.ravel() if diff.point_distance is not None else None
     flat_a_rgb, flat_b_rgb = diff.a_rgb.reshape(-1, 3), diff.b_rgb.reshape(-1, 3)
-    lum_a = diff.a_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
-    lum_b = diff.b_rgb.reshape(-1, 3) @ np.array([0.299, 0.587, 0.114], np.float32)
+    lum_a = flat_a_rgb @ np.array([0.299, 0.587, 0.114], np.float32)
+    lum_b = flat_b_rgb @ np.array([0.299, 0.587, 0.114], np.float32)
     jflat = diff.joint.ravel()
     lum_ref_a = max(float(np.median(lum_a[jflat])), 1e-6)
     lum_ref_b = max(float(np.median(lum_b[jflat])), 1e-6)
@@ -367,9 +376,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         seen_outline = outline
         sub_hit = grid.hit[r_lo:r_hi][:, c_idx]
         if gap_kernel is not None:
-            closed = cv2.morphologyEx(outline.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
-            outline = _fill_holes(outline | (closed & ~sub_joint & sub_hit))
-            outline &= sub_joint | sub_hit
+            outline = _close_across(outline, gap_kernel, sub_joint, sub_hit)
         if cfg.extend_into_unseen:
             outline = _extend_into_unseen(diff, outline, seen_outline, sub_joint, sub_hit,
                                           (r_lo, r_hi), c_idx, ring_px,

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from cystomap.errors import InputError
+from cystomap.images import sample_bilinear
 from cystomap.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
@@ -80,12 +81,11 @@ def _grid(patch_px: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples of ``img`` at (x, y) (OpenCV pixel centres; 2D arrays of equal shape
-    with at most 32767 columns) and whether each sample lies inside the image."""
+    """Bilinear samples of ``img`` at (x, y) (OpenCV pixel centres; arrays of equal shape) and
+    whether each sample lies inside the image."""
     h, w = img.shape
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    val = cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    val = sample_bilinear(img, x.ravel(), y.ravel())[:, 0].reshape(x.shape)
     return val, inside
 
 
