@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from cystomap.errors import InputError
 
+TEXTURE_MODES = ("procedural", "mosaic")
+
 
 @dataclass(frozen=True)
 class PhantomConfig:
@@ -55,6 +57,14 @@ class PhantomConfig:
     atlas_height: int = 1024
     # rendering threads (frames rendered concurrently); 0 = os.cpu_count() capped at 2
     threads: int = 0
+    # wall texture: "procedural" (the baked mucosa) or "mosaic" (the wall tiled with a few
+    # patches of that mucosa, each repeated many times with random rotation, mirroring,
+    # anisotropic stretch and tint: the failure class of a printed photo-mosaic phantom)
+    texture_mode: str = "procedural"
+    # mosaic: number of distinct patches
+    mosaic_patches: int = 4
+    # mosaic: patch edge length on the wall in mm (tiles are about 0.6x this apart)
+    mosaic_patch_mm: float = 25.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -96,5 +106,11 @@ class PhantomConfig:
             problems.append("atlas_height must be in [32, 8192]")
         if self.threads < 0:
             problems.append("threads must be >= 0")
+        if self.texture_mode not in TEXTURE_MODES:
+            problems.append(f"texture_mode must be one of {', '.join(TEXTURE_MODES)}")
+        if not 1 <= self.mosaic_patches <= 64:
+            problems.append("mosaic_patches must be in [1, 64]")
+        if not 3.0 <= self.mosaic_patch_mm <= 80.0:
+            problems.append("mosaic_patch_mm must be in [3, 80]")
         if problems:
             raise InputError("phantom config: " + "; ".join(problems))

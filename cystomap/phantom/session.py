@@ -267,6 +267,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         truth = _truth(cfg, session, camera, bladder, atlas, seen, traj, exposure, blur_len,
                        blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows, optical)
         truth["video_codec"] = codec.lower()
+        truth["texture"] = {"mode": cfg.texture_mode,
+                            "mosaic": cube.mosaic.to_dict() if cube.mosaic is not None else None}
         write_json(tmp / "truth.json", truth)
     log.info("phantom session %d written to %s in %.1f s (seen %.1f %%)", session, out_dir,
              time.perf_counter() - t_start, 100 * truth["seen_fraction"])
