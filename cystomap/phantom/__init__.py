@@ -14,7 +14,8 @@ Files written per session (``generate_session``):
   ``cfg.fps``, camera.width x camera.height, lens distortion applied.
 * ``poses.csv``  ``frame,qw,qx,qy,qz,tx,ty,tz``: camera-to-world rotation (unit quaternion,
   qw >= 0) and camera centre (mm); frame = 0-based index in the video; OpenCV camera axes.
-* ``camera.json``  ``Camera.save`` of the calibration used (with distortion).
+* ``camera.json``  ``Camera.save`` of the lens rendered (with distortion): the given camera,
+  its k1 replaced by ``cfg.lens_k1`` when set (truth.json ``lens`` compares the two).
 * ``surface.ply``  the wall of this session (urethra tube excluded, open at the aperture),
   binary PLY, mm, with vertex normals and albedo vertex colours.
 * ``albedo.png``  equirectangular albedo about ``truth.json["barycentre"]``, 2H x H; column j

@@ -65,6 +65,10 @@ class PhantomConfig:
     mosaic_patches: int = 4
     # mosaic: patch edge length on the wall in mm (tiles are about 0.6x this apart)
     mosaic_patch_mm: float = 25.0
+    # radial distortion k1 of the rendered lens, replacing the camera's (None = the camera's
+    # own); with a diagonal_fov_deg-only camera the pipeline must then estimate it. The
+    # rendered lens is written to camera.json (and truth.json "lens")
+    lens_k1: float | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -112,5 +116,7 @@ class PhantomConfig:
             problems.append("mosaic_patches must be in [1, 64]")
         if not 3.0 <= self.mosaic_patch_mm <= 80.0:
             problems.append("mosaic_patch_mm must be in [3, 80]")
+        if self.lens_k1 is not None and not -0.45 <= self.lens_k1 <= 0.3:
+            problems.append("lens_k1 must be null or in [-0.45, 0.3]")
         if problems:
             raise InputError("phantom config: " + "; ".join(problems))
