@@ -144,3 +144,71 @@ def test_lens_k1_distortion(tmp_path):
         corr[name] = np.corrcoef(hp_p[4:-4, 4:-4][inner], hp_i[4:-4, 4:-4][inner])[0, 1]
     # measured (seed 7, 320x180, frame 2): model 0.74, pinhole 0.21
     assert corr["model"] > 0.5 and abs(corr["pinhole"]) < 0.5 * corr["model"], corr
+
+
+def test_texture_families():
+    """texture_family draws the subject's mucosa from a named family (seeded, recorded); the
+    default (empty) keeps the built-in wall; the families differ as named."""
+    from cystomap.phantom.texture import TEXTURE_FAMILIES, TextureParams, texture_params
+
+    base = PhantomConfig(cube_face_px=256)
+    assert texture_params(base) == TextureParams()
+    bladder = base_bladder(base)
+    scene = bladder.scene()
+    stats = {}
+    for fam in ("A", "B", "C"):
+        cfg = replace(base, texture_family=fam)
+        tp = texture_params(cfg)
+        assert tp == texture_params(cfg)  # seeded
+        assert tp != texture_params(replace(cfg, seed=8))  # per subject
+        for key in ("mottle_scale", "mottle_contrast", "vessel_density", "grain"):
+            lo, hi = TEXTURE_FAMILIES[fam][key]
+            assert lo <= getattr(tp, key) <= hi
+        cube = build_mucosa(cfg, bladder, scene)
+        assert cube.params == tp
+        img = cube.levels[0].reshape(-1, 3).astype(np.float64)
+        stats[fam] = img.mean(0)
+    ratio = {f: m[1] / m[0] for f, m in stats.items()}  # green / red
+    assert ratio["B"] > ratio["A"] > ratio["C"]  # pale > pink > red
+    a = build_mucosa(replace(base, texture_family="B"), bladder, scene)
+    assert np.array_equal(a.levels[0], build_mucosa(replace(base, texture_family="B"), bladder,
+                                                    scene).levels[0])
+
+
+def test_photometry_and_lesion_kinds_in_a_session(tmp_path):
+    """photometric_variation: each session's white balance shifts its channel means as
+    recorded; lesion kinds and sites are recorded in lesions.csv; seeded renders repeat."""
+    cam = default_camera(160, 90)
+    kinds = ("papillary", "cis", "scar", "perivascular")
+    cfg = PhantomConfig(**TINY, lesion_diameters_mm=(5.0, 12.0, 20.0, 25.0), lesion_kinds=kinds,
+                        lesion_sites=("seam", "any", "any", "neck"), texture_family="C",
+                        photometric_variation=1.5)
+    plain = replace(cfg, photometric_variation=0.0)
+    out = {}
+    for name, c in (("var", cfg), ("plain", plain), ("again", cfg)):
+        out[name] = generate_session(tmp_path / name, 2, c, cam)
+    photo = json.loads((out["var"] / "truth.json").read_text())["photometry"]
+    assert json.loads((out["plain"] / "truth.json").read_text())["photometry"]["white_balance"] == [1.0] * 3
+    fv, fp = read_frames(out["var"] / "video.mp4"), read_frames(out["plain"] / "video.mp4")
+    mv = np.mean([f.reshape(-1, 3).mean(0) for f in fv], 0)
+    mp = np.mean([f.reshape(-1, 3).mean(0) for f in fp], 0)
+    measured = (mv / mp) / (mv / mp).mean()
+    wb = np.array(photo["white_balance"]) ** (1 / 2.2)
+    predicted = wb / wb.mean()
+    # measured (seed 7, session 2): channel shifts 1.005 1.022 0.973, predicted 0.994 1.027
+    # 0.978 (the rest: albedo colour correlated with the shading, which the variation changes)
+    assert np.ptp(predicted) > 0.02  # a visible shift
+    assert np.abs(measured - predicted).max() < 0.5 * np.ptp(predicted)
+    assert np.corrcoef(measured, predicted)[0, 1] > 0.8
+    assert photo != json.loads((generate_session(tmp_path / "s1", 1, replace(cfg, n_frames=2), cam)
+                                / "truth.json").read_text())["photometry"]  # per session
+    # kinds and sites recorded per lesion (config order = id)
+    rows = (out["var"] / "lesions.csv").read_text().splitlines()
+    assert rows[0].endswith(",kind,site,height_mm")
+    rec = [r.split(",") for r in rows[1:]]
+    assert [r[10] for r in rec] == list(kinds) and [r[11] for r in rec] == ["seam", "any", "any", "neck"]
+    assert float(rec[0][12]) > 0 and all(float(r[12]) == 0 for r in rec[1:])
+    # determinism
+    assert all(np.array_equal(a, b) for a, b in zip(fv, read_frames(out["again"] / "video.mp4"),
+                                                     strict=True))
+    assert (out["var"] / "lesions.csv").read_text() == (out["again"] / "lesions.csv").read_text()

@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from cystomap.errors import InputError
 
 TEXTURE_MODES = ("procedural", "mosaic")
+TEXTURE_FAMILIES = ("A", "B", "C")  # defined in cystomap.phantom.texture.TEXTURE_FAMILIES
+LESION_KINDS = ("painted", "papillary", "cis", "scar", "perivascular")
+LESION_SITES = ("any", "seam", "pole", "neck")
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,21 @@ class PhantomConfig:
     # own); with a diagonal_fov_deg-only camera the pipeline must then estimate it. The
     # rendered lens is written to camera.json (and truth.json "lens")
     lens_k1: float | None = None
+    # texture family of the subject ("" = the fixed default wall; "A" pink/fine, "B" pale/
+    # coarse blotches/sparse vessels, "C" red/dense vessels/strong grain): mottling scale and
+    # contrast, vessel density and colour, grain drawn per seed within the family's ranges
+    texture_family: str = ""
+    # per-session photometry drawn from the seed (0 = none; 1 = the nominal ranges): white
+    # balance, exposure bias, auto-gain smoothing and flicker, vignetting and fall-off exponents
+    photometric_variation: float = 0.0
+    # kind of each lesion (one per lesion_diameters_mm, or a list drawn from per lesion, seeded):
+    # painted (papillary look, flat: the default), papillary (raised: relief in the geometry),
+    # cis (flat red velvety patch, low contrast), scar (pale), perivascular (red patch beside
+    # a vessel that is in both sessions); () = all painted
+    lesion_kinds: tuple[str, ...] = ()
+    # site of each lesion (same rule): any, seam (across the atlas's +-180 deg azimuth seam),
+    # pole (over the top pole of the atlas), neck (just beside the aperture); () = all any
+    lesion_sites: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         problems = []
@@ -116,6 +134,14 @@ class PhantomConfig:
             problems.append("mosaic_patches must be in [1, 64]")
         if not 3.0 <= self.mosaic_patch_mm <= 80.0:
             problems.append("mosaic_patch_mm must be in [3, 80]")
+        if self.texture_family not in ("", *TEXTURE_FAMILIES):
+            problems.append(f"texture_family must be empty or one of {', '.join(TEXTURE_FAMILIES)}")
+        if not 0 <= self.photometric_variation <= 3:
+            problems.append("photometric_variation must be in [0, 3]")
+        for key, names in (("lesion_kinds", LESION_KINDS), ("lesion_sites", LESION_SITES)):
+            bad = [k for k in getattr(self, key) if k not in names]
+            if bad:
+                problems.append(f"{key}: unknown {', '.join(bad)} (known: {', '.join(names)})")
         if self.lens_k1 is not None and not -0.45 <= self.lens_k1 <= 0.3:
             problems.append("lens_k1 must be null or in [-0.45, 0.3]")
         if problems:

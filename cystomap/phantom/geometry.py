@@ -368,15 +368,25 @@ def base_bladder(cfg: PhantomConfig) -> Bladder:
     return _base_bladder_cached(tuple((k, getattr(cfg, k)) for k in GEOMETRY_KEYS))
 
 
+def _relief(cfg: PhantomConfig, base: Bladder) -> np.ndarray | None:
+    """Vertex displacement of session 2's raised (papillary) lesions, None without any."""
+    if "papillary" not in cfg.lesion_kinds or not cfg.lesion_diameters_mm:
+        return None
+    from cystomap.phantom.lesions import lesion_relief, place_lesions
+
+    return lesion_relief(cfg, base, place_lesions(cfg, base, base.scene()))
+
+
 def session_bladder(cfg: PhantomConfig, session: int) -> Bladder:
     """The bladder of ``session`` (1 or 2) in its world frame; session 2 is deformed."""
     if session not in (1, 2):
         raise InputError(f"phantom: session must be 1 or 2, got {session!r}")
     base = base_bladder(cfg)
-    if session == 1 or cfg.deformation == 0:
+    relief = _relief(cfg, base) if session == 2 else None
+    if session == 1 or (cfg.deformation == 0 and relief is None):
         return base
     deform = make_deformation(cfg)
-    v = deform.apply(base.vertices)
+    v = deform.apply(base.vertices if relief is None else base.vertices + relief)
     wall_t = base.wall_triangles
     vol, cen, area = _measure(v, base.rim, wall_t)
     _check_star(v, wall_t, cen, "the deformed bladder")
@@ -385,6 +395,8 @@ def session_bladder(cfg: PhantomConfig, session: int) -> Bladder:
                               vertex_normals(v, base.triangles[base.n_wall_tris:])[nw:]])
     info = dict(base.info)
     info["deformation"] = deform.to_dict()
+    if relief is not None:
+        info["relief_max_mm"] = float(np.linalg.norm(relief, axis=1).max())
     return Bladder(
         vertices=v, triangles=base.triangles, n_wall_tris=base.n_wall_tris, n_wall_verts=nw,
         material=base.material, rim=base.rim, barycentre=cen, volume_mm3=vol,

@@ -161,8 +161,9 @@ class Trace:
 
 class Renderer:
     def __init__(self, camera: Camera, bladder: Bladder, scene, cube: CubeMap,
-                 rays: RayGrid | None = None) -> None:
+                 rays: RayGrid | None = None, falloff_exponent: float = 2.0) -> None:
         self.camera = camera
+        self.falloff_exponent = falloff_exponent
         self.bladder = bladder
         self.scene = scene
         self.cube = cube
@@ -245,8 +246,13 @@ class Renderer:
     def irradiance(self, tr: Trace, rays: RayGrid | None = None) -> np.ndarray:
         """E * V per hit pixel (linear, before exposure)."""
         rg = rays if rays is not None else self.rays
-        th = tr.t_hit
-        return tr.cos_inc / (th * th) * tr.of_hits(rg.vignette)
+        return tr.cos_inc / self.falloff(tr.t_hit) * tr.of_hits(rg.vignette)
+
+    def falloff(self, th: np.ndarray) -> np.ndarray:
+        """Illumination fall-off with distance: ``t ** falloff_exponent`` (2 = inverse square)."""
+        if self.falloff_exponent == 2.0:
+            return th * th
+        return np.power(th, np.float32(self.falloff_exponent))
 
     def shade(self, tr: Trace, exposure: float, gain: float, specular: bool) -> np.ndarray:
         """Float RGB image (H, W, 3) in display units 0..255 (before noise and blur)."""
@@ -265,7 +271,7 @@ class Renderer:
         if specular and gloss is not None:
             a_lin = (albedo / 255.0) ** GAMMA * lin[:, None]
             spec = (SPECULAR_STRENGTH * exposure * gloss * tr.cos_inc**SPECULAR_EXPONENT
-                    / (th * th) * tr.of_hits(rg.vignette))
+                    / self.falloff(th) * tr.of_hits(rg.vignette))
             shaded = 255.0 * np.power(a_lin + spec[:, None], 1 / GAMMA) * gain
         else:
             albedo *= (np.power(lin, 1 / GAMMA) * gain)[:, None]

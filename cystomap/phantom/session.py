@@ -28,9 +28,16 @@ from cystomap.phantom.geometry import (
     wall_bbox,
     wall_extent,
 )
-from cystomap.phantom.lesions import aperture_cone, lesion_rows, paint_lesions, place_lesions
+from cystomap.phantom.lesions import (
+    aperture_cone,
+    lesion_rows,
+    paint_lesions,
+    paint_site_vessels,
+    place_lesions,
+)
 from cystomap.phantom.render import (
     EXPOSURE_TARGET,
+    GAMMA,
     RayGrid,
     Renderer,
     finish,
@@ -47,7 +54,7 @@ STREAM_BAD = 30
 STREAM_NOISE = 40
 POSE_COLUMNS = ("frame", "qw", "qx", "qy", "qz", "tx", "ty", "tz")
 LESION_COLUMNS = ("id", "x", "y", "z", "nx", "ny", "nz", "diameter_mm", "azimuth_deg",
-                  "elevation_deg")
+                  "elevation_deg", "kind", "site", "height_mm")
 SURFACE_NOTE = ("bladder wall only (urethra tube excluded; open at the aperture), triangle mesh"
                 " in mm in this session's world frame (the frame of poses.csv), binary PLY with"
                 " vertex normals and vertex colours = albedo")
@@ -81,8 +88,35 @@ def _bad_frames(cfg: PhantomConfig, session: int) -> dict[int, str]:
     return {int(f): str(k) for f, k in zip(frames, kinds, strict=True)}
 
 
-def _exposures(renderer: Renderer, traj: Trajectory) -> np.ndarray:
-    """Auto-exposure: a low-resolution pre-pass per frame, smoothed over time."""
+STREAM_PHOTO = 50
+
+
+def photometry(cfg: PhantomConfig, session: int) -> dict:
+    """Per-session photometric draws (seeded); the nominal camera when photometric_variation
+    is 0. white_balance: linear gain per RGB channel; exposure_bias: multiplies the
+    auto-exposure target; autogain_alpha: weight of the new frame in the auto-exposure's
+    geometric smoothing; flicker: std of a per-frame log-gain; vignetting_exponent: V =
+    cos^p of the off-axis angle; falloff_exponent: E ~ cos(incidence) / distance^q."""
+    v = cfg.photometric_variation
+    if v == 0:
+        return {"white_balance": [1.0, 1.0, 1.0], "exposure_bias": 1.0, "autogain_alpha": 0.5,
+                "flicker": 0.0, "vignetting_exponent": 3.0, "falloff_exponent": 2.0,
+                "variation": 0.0}
+    g = rng(cfg, STREAM_PHOTO + session)
+    wb = np.exp(g.normal(0, 0.06 * v, size=3))
+    return {"white_balance": [float(x) for x in wb / np.exp(np.log(wb).mean())],
+            "exposure_bias": float(np.exp(g.normal(0, 0.15 * v))),
+            "autogain_alpha": float(np.clip(0.5 + g.uniform(-0.35, 0.35) * v, 0.1, 0.95)),
+            "flicker": float(0.02 * v),
+            "vignetting_exponent": float(np.clip(3.0 + g.uniform(-1.5, 2.0) * v, 0.5, 8.0)),
+            "falloff_exponent": float(np.clip(2.0 + g.uniform(-0.4, 0.4) * v, 1.2, 2.8)),
+            "variation": v}
+
+
+def _exposures(renderer: Renderer, traj: Trajectory, target: float = EXPOSURE_TARGET,
+               alpha: float = 0.5) -> np.ndarray:
+    """Auto-exposure: a low-resolution pre-pass per frame, smoothed over time (geometric,
+    weight ``alpha`` for the new frame) towards ``target``."""
     rg = renderer.rays
     step = max(1, rg.width // 80)
     sel = (np.arange(rg.height)[::step, None] * rg.width + np.arange(rg.width)[None, ::step]).ravel()
@@ -93,8 +127,8 @@ def _exposures(renderer: Renderer, traj: Trajectory) -> np.ndarray:
     for k, (rot, c) in enumerate(zip(traj.rotations, traj.centres, strict=True)):
         tr = renderer.trace(rot, c, rays=low)
         e = renderer.irradiance(tr, rays=low)
-        ideal = EXPOSURE_TARGET / max(float(np.percentile(e, 60)) if len(e) else 1.0, 1e-12)
-        cur = ideal if prev is None else float(np.exp(0.5 * np.log(ideal) + 0.5 * np.log(prev)))
+        ideal = target / max(float(np.percentile(e, 60)) if len(e) else 1.0, 1e-12)
+        cur = ideal if prev is None else float(np.exp(alpha * np.log(ideal) + (1 - alpha) * np.log(prev)))
         out[k] = prev = cur
     return out
 
@@ -233,14 +267,27 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     scene = scene1 if bladder is base else bladder.scene()
     cube = build_mucosa(cfg, base, scene1)
     lesions = place_lesions(cfg, base, scene1) if cfg.lesion_diameters_mm else []
+    if lesions:
+        paint_site_vessels(cube, lesions, base, scene1)
     if session == 2 and lesions:
         paint_lesions(cube, lesions, base, scene1)
     traj = make_trajectory(cfg, session, bladder, scene)
     n = cfg.n_frames
-    renderer = Renderer(camera, bladder, scene, cube, rays=pixel_rays(camera))
+    photo = photometry(cfg, session)
+    rays = pixel_rays(camera)
+    if photo["vignetting_exponent"] != 3.0:
+        rays.vignette = np.power(np.clip(rays.dirs[:, 2], 0, 1),
+                                 np.float32(photo["vignetting_exponent"])).astype(np.float32)
+    renderer = Renderer(camera, bladder, scene, cube, rays=rays,
+                        falloff_exponent=photo["falloff_exponent"])
     axis_hit = cast(scene, traj.centres.astype(np.float32),
                     traj.rotations[:, :, 2].astype(np.float32))["t_hit"]
-    exposure = _exposures(renderer, traj)
+    exposure = _exposures(renderer, traj, EXPOSURE_TARGET * photo["exposure_bias"],
+                          photo["autogain_alpha"])
+    if photo["flicker"] > 0:
+        exposure = exposure * np.exp(rng(cfg, STREAM_PHOTO + 2 + session).normal(
+            0, photo["flicker"], size=len(exposure)))
+    wb_display = np.power(np.array(photo["white_balance"], np.float32), np.float32(1 / GAMMA))
     blur_len, blur_ang = _motion_blur(cfg, camera, traj, axis_hit)
     bad = _bad_frames(cfg, session)
     gain = cfg.session2_gain if session == 2 else 1.0
@@ -254,6 +301,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     def render(k: int) -> tuple[np.ndarray, dict, np.ndarray | None]:
         tr = renderer.trace(traj.rotations[k], traj.centres[k], nthreads=cast_threads)
         img = renderer.shade(tr, float(exposure[k]), gain, cfg.specular)
+        if photo["variation"] > 0:
+            img = img * wb_display  # white balance on the linear signal, shown after gamma
         noise = np.random.default_rng(np.random.SeedSequence([cfg.seed, STREAM_NOISE + session, k]))
         out = finish(img, noise, cfg.noise_sigma, float(blur_len[k]), float(blur_ang[k]),
                      bad.get(k), optical)
@@ -313,7 +362,9 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
                        blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows, optical)
         truth["video_codec"] = codec.lower()
         truth["lens"] = lens_truth(cfg, given, camera)
-        truth["texture"] = {"mode": cfg.texture_mode,
+        truth["photometry"] = photo
+        truth["texture"] = {"mode": cfg.texture_mode, "family": cfg.texture_family,
+                            "params": cube.params.to_dict() if cube.params is not None else None,
                             "mosaic": cube.mosaic.to_dict() if cube.mosaic is not None else None}
         write_json(tmp / "truth.json", truth)
     log.info("phantom session %d written to %s in %.1f s (seen %.1f %%)", session, out_dir,

@@ -23,11 +23,12 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
+from cystomap.phantom.config import TEXTURE_FAMILIES as FAMILY_NAMES
 from cystomap.phantom.config import PhantomConfig
 from cystomap.phantom.geometry import STREAM_TEXTURE, Bladder, rng, unit
 
@@ -48,6 +49,66 @@ MUCOSA_RGB = np.array([0.90, 0.62, 0.50], dtype=np.float32)
 PALE_RGB = np.array([0.94, 0.76, 0.66], dtype=np.float32)  # pale, less vascular patches
 VESSEL_RGB = np.array([0.60, 0.15, 0.13], dtype=np.float32)
 DEEP_TINT = np.array([0.10, 0.32, 0.24], dtype=np.float32)  # darkening of R, G, B by deep vessels
+STREAM_FAMILY = 7
+
+
+@dataclass(frozen=True)
+class TextureParams:
+    """Parameters of the procedural mucosa; the defaults are the built-in phantom's wall."""
+
+    mucosa_rgb: tuple[float, float, float] = (0.90, 0.62, 0.50)
+    vessel_rgb: tuple[float, float, float] = (0.60, 0.15, 0.13)
+    deep_tint: tuple[float, float, float] = (0.10, 0.32, 0.24)  # darkening by deep vessels
+    mottle_scale: float = 1.0  # multiplies the blotch (2.5 mm) and mottle grid spacings
+    mottle_contrast: float = 1.0  # multiplies the blotch (1.5 %) and mottle (1.2 %) amplitudes
+    vessel_density: float = 1.0  # multiplies the number of vessel trunks (one per 700 mm2)
+    grain: float = 0.025  # relative std of the fine grain
+    grain_scale: float = 1.0  # grain blur in units of texture_detail_mm / 2
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+#: texture families: per parameter a (low, high) range, drawn uniformly per subject (seed);
+#: colours: a base RGB and the half-width of a uniform jitter per channel
+TEXTURE_FAMILIES: dict[str, dict] = {
+    # A: pink mucosa, fine mottling, the default vessel network (closest to the default wall)
+    "A": {"mucosa_rgb": ((0.90, 0.62, 0.50), 0.02), "vessel_rgb": ((0.60, 0.15, 0.13), 0.04),
+          "deep_tint": ((0.10, 0.32, 0.24), 0.02), "mottle_scale": (0.8, 1.25),
+          "mottle_contrast": (0.8, 1.5), "vessel_density": (0.8, 1.3), "grain": (0.02, 0.03),
+          "grain_scale": (0.8, 1.2)},
+    # B: pale mucosa, coarse strong blotches, sparse faint vessels, little grain
+    "B": {"mucosa_rgb": ((0.93, 0.73, 0.63), 0.02), "vessel_rgb": ((0.72, 0.30, 0.28), 0.04),
+          "deep_tint": ((0.06, 0.20, 0.16), 0.02), "mottle_scale": (1.8, 3.0),
+          "mottle_contrast": (1.5, 3.0), "vessel_density": (0.3, 0.6), "grain": (0.01, 0.02),
+          "grain_scale": (1.5, 2.5)},
+    # C: red (inflamed) mucosa, fine strong mottling, dense dark vessels, strong grain
+    "C": {"mucosa_rgb": ((0.88, 0.50, 0.42), 0.02), "vessel_rgb": ((0.50, 0.08, 0.10), 0.04),
+          "deep_tint": ((0.14, 0.38, 0.30), 0.02), "mottle_scale": (0.5, 0.8),
+          "mottle_contrast": (2.0, 3.5), "vessel_density": (1.5, 2.2), "grain": (0.035, 0.05),
+          "grain_scale": (0.8, 1.2)},
+}
+
+
+assert set(TEXTURE_FAMILIES) == set(FAMILY_NAMES)
+
+
+def texture_params(cfg: PhantomConfig) -> TextureParams:
+    """The subject's texture: the default wall, or drawn from ``cfg.texture_family`` (seeded)."""
+    if not cfg.texture_family:
+        return TextureParams()
+    fam = TEXTURE_FAMILIES[cfg.texture_family]
+    g = rng(cfg, STREAM_FAMILY)
+    out = {}
+    for key in ("mucosa_rgb", "vessel_rgb", "deep_tint", "mottle_scale", "mottle_contrast",
+                "vessel_density", "grain", "grain_scale"):
+        spec = fam[key]
+        if isinstance(spec[0], tuple):
+            base, jit = spec
+            out[key] = tuple(float(np.clip(b + g.uniform(-jit, jit), 0.0, 1.0)) for b in base)
+        else:
+            out[key] = float(g.uniform(*spec))
+    return TextureParams(**out)
 
 
 def face_st(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -93,6 +154,7 @@ class CubeMap:
     n: int
     gloss: np.ndarray | None = None  # float32 layout at level 2, values in [0, 1]
     mosaic: Mosaic | None = None  # the tiles, when the wall is a mosaic
+    params: TextureParams | None = None  # the procedural texture's parameters
 
     def __post_init__(self) -> None:
         self.rebuild_mips()
@@ -472,9 +534,10 @@ def _rotate_tangent(h: np.ndarray, p: np.ndarray, angle: np.ndarray) -> np.ndarr
 
 
 def grow_vessels(g: np.random.Generator, radius: RadiusTable, area_mm2: float,
-                 min_width_mm: float) -> Vessels:
-    """Branching random walks on the wall (trunks ~1 mm wide, branches down to min width)."""
-    n0 = max(6, round(area_mm2 / 700.0))
+                 min_width_mm: float, density: float = 1.0) -> Vessels:
+    """Branching random walks on the wall (trunks ~1 mm wide, branches down to min width);
+    ``density`` multiplies the number of trunks."""
+    n0 = max(6, round(area_mm2 / 700.0)) if density == 1.0 else max(3, round(area_mm2 * density / 700.0))
     p = unit(g.normal(size=(n0, 3)))
     h = unit(np.cross(p, unit(g.normal(size=(n0, 3)))))
     width = np.exp(g.uniform(np.log(max(0.3, min_width_mm)), np.log(1.1), size=n0))
@@ -617,13 +680,17 @@ def build_mucosa(cfg: PhantomConfig, bladder: Bladder, scene) -> CubeMap:
     lo = bladder.vertices.min(0) - 4.0
     hi = bladder.vertices.max(0) + 4.0
     detail = cfg.texture_detail_mm
+    tp = texture_params(cfg)
+    mucosa_rgb = np.array(tp.mucosa_rgb, dtype=np.float32)
+    vessel_rgb = np.array(tp.vessel_rgb, dtype=np.float32)
+    deep_tint = np.array(tp.deep_tint, dtype=np.float32)
     # smooth 3-D fields (functions of the session-1 wall point, so seamless across faces)
     bright = Waves.random(g, 12, (18.0, 90.0), 0.035)
     pink = Waves.random(g, 10, (25.0, 80.0), 1.0)
     pale = Waves.random(g, 10, (30.0, 100.0), 1.0)
-    blotch = NoiseVolume(g, lo, hi, 2.5, 1.6)
-    mottle = NoiseVolume(g, lo, hi, max(1.0, 2.0 * detail), 1.2)
-    vessels = grow_vessels(g, radius, bladder.wall_area_mm2, max(detail, 0.06))
+    blotch = NoiseVolume(g, lo, hi, 2.5 * tp.mottle_scale, 1.6)
+    mottle = NoiseVolume(g, lo, hi, max(1.0, 2.0 * detail) * tp.mottle_scale, 1.2)
+    vessels = grow_vessels(g, radius, bladder.wall_area_mm2, max(detail, 0.06), tp.vessel_density)
     deep_sel = vessels.deep
     deep_op = 0.5 * vessels.fade
     sup_op = np.clip(0.2 + 0.6 * vessels.width_mm, 0.25, 0.8) * vessels.fade
@@ -650,10 +717,13 @@ def build_mucosa(cfg: PhantomConfig, bladder: Bladder, scene) -> CubeMap:
         w2[miss] = d2[miss] * radius(d2[miss])[:, None]
         bl = blotch(w2).reshape(side2, side2)
         mo = mottle(w2).reshape(side2, side2)
-        b = sm[..., 0] + 0.015 * bl + 0.012 * mo
+        if tp.mottle_contrast == 1.0:
+            b = sm[..., 0] + 0.015 * bl + 0.012 * mo
+        else:
+            b = sm[..., 0] + (0.015 * tp.mottle_contrast) * bl + (0.012 * tp.mottle_contrast) * mo
         col = np.empty((side2, side2, 3), np.float32)
         for c, (kp, pale_c) in enumerate(zip((0.0, 0.16, 0.12), PALE_RGB, strict=True)):
-            x = MUCOSA_RGB[c] * (1 + b) * (1 - kp * sm[..., 1])
+            x = mucosa_rgb[c] * (1 + b) * (1 - kp * sm[..., 1])
             col[..., c] = x + (pale_c - x) * (0.4 * sm[..., 2])
         gl = np.clip((mo - 1.2) / 0.5, 0, 1) * np.clip(1 + 0.5 * bl, 0, 1)
         r0, c0 = (face // 3) * t2, (face % 3) * t2
@@ -670,15 +740,15 @@ def build_mucosa(cfg: PhantomConfig, bladder: Bladder, scene) -> CubeMap:
         sup *= 1 / 255
         # fine grain (independent per face: white noise at texture_detail_mm)
         grain = g.standard_normal((tile, tile), dtype=np.float32)
-        sg = max(0.5, 0.5 * detail / texel_mm)
+        sg = max(0.5, 0.5 * detail / texel_mm * tp.grain_scale)
         grain = cv2.GaussianBlur(grain, (0, 0), sg)
-        grain *= 0.025 / max(float(grain[::7, ::7].std()), 1e-6)
+        grain *= tp.grain / max(float(grain[::7, ::7].std()), 1e-6)
         grain += 1
         planes = []
         for c in range(3):
             x = col[..., c]
-            x *= 1 - (DEEP_TINT[c] / 255) * deep
-            x += (VESSEL_RGB[c] - x) * sup
+            x *= 1 - (deep_tint[c] / 255) * deep
+            x += (vessel_rgb[c] - x) * sup
             x *= grain
             planes.append(x)
         col = cv2.merge(planes)
@@ -687,7 +757,7 @@ def build_mucosa(cfg: PhantomConfig, bladder: Bladder, scene) -> CubeMap:
             col = cv2.GaussianBlur(col, (0, 0), blur)
         r0, c0 = (face // 3) * tile, (face % 3) * tile
         level0[r0:r0 + tile, c0:c0 + tile] = cv2.convertScaleAbs(col, alpha=255.0)
-    cube = CubeMap([level0], n, gloss)
+    cube = CubeMap([level0], n, gloss, params=tp)
     log.info("texture baked in %.1f s", time.perf_counter() - t0)
     if cfg.texture_mode == "mosaic":
         cube = build_mosaic(cfg, cube, radius)
@@ -824,7 +894,7 @@ def build_mosaic(cfg: PhantomConfig, source: CubeMap, radius: RadiusTable) -> Cu
         out *= mosaic.tint[k].astype(np.float32)
         r0, c0 = (face // 3) * tile, (face % 3) * tile
         level0[r0:r0 + tile, c0:c0 + tile] = np.clip(out + 0.5, 0, 255).astype(np.uint8).reshape(side, side, 3)
-    cube = CubeMap([level0], n, source.gloss, mosaic)
+    cube = CubeMap([level0], n, source.gloss, mosaic, source.params)
     log.info("mosaic: %d tiles of %d patches (%d px, %.1f mm) in %.1f s", n_tiles,
              cfg.mosaic_patches, px, size, time.perf_counter() - t0)
     return cube
