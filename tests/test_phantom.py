@@ -161,7 +161,7 @@ def test_files_and_formats(sessions, camera):
         assert Camera.load(d / "camera.json") == camera
         fields, rows = read_csv_dicts(d / "lesions.csv")
         assert fields == ["id", "x", "y", "z", "nx", "ny", "nz", "diameter_mm", "azimuth_deg",
-                          "elevation_deg"]
+                          "elevation_deg", "kind", "site", "height_mm"]
         assert len(rows) == (0 if s == 1 else 6)
         truth = json.loads((d / "truth.json").read_text())
         assert truth["session"] == s and truth["n_frames"] == SMALL["n_frames"]

@@ -212,3 +212,108 @@ def test_photometry_and_lesion_kinds_in_a_session(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(fv, read_frames(out["again"] / "video.mp4"),
                                                      strict=True))
     assert (out["var"] / "lesions.csv").read_text() == (out["again"] / "lesions.csv").read_text()
+
+
+def test_lesion_sites_and_papillary_relief():
+    """Sites put lesions across the atlas seam, over the pole and beside the neck; papillary
+    lesions are raised into the cavity in session 2's geometry (only there)."""
+    from cystomap.phantom.geometry import az_el, session_bladder
+    from cystomap.phantom.lesions import (
+        NECK_CLEARANCE_DEG,
+        aperture_cone,
+        lesion_kinds_and_sites,
+        place_lesions,
+    )
+
+    cfg = PhantomConfig(lesion_diameters_mm=(8.0, 12.0, 20.0, 30.0),
+                        lesion_kinds=("papillary", "cis", "papillary", "painted"),
+                        lesion_sites=("seam", "pole", "neck", "any"))
+    assert lesion_kinds_and_sites(replace(cfg, lesion_kinds=(), lesion_sites=()))[0] == ["painted"] * 4
+    drawn = lesion_kinds_and_sites(replace(cfg, lesion_kinds=("cis", "scar")))[0]
+    assert set(drawn) <= {"cis", "scar"} and len(drawn) == 4
+    base = base_bladder(cfg)
+    lesions = place_lesions(cfg, base, base.scene())
+    ap_dir, ap_ang = aperture_cone(base)
+    for les in lesions:
+        r = float(np.linalg.norm(les.material))
+        ang_r = np.degrees(les.diameter_mm / 2 / r)  # angular radius seen from the centre
+        az, el = az_el(les.material)
+        if les.site == "seam":
+            assert 180 - abs(az) < 0.35 * ang_r  # spans the +-180 deg seam
+        elif les.site == "pole":
+            assert el > 90 - 0.35 * ang_r
+        elif les.site == "neck":
+            off = np.degrees(np.arccos(les.material @ ap_dir / r))
+            assert ap_ang + NECK_CLEARANCE_DEG < off - ang_r < ap_ang + 25.0
+    # relief: session 2 only, inward, about the configured height at the papillary centres
+    s1, s2 = session_bladder(cfg, 1), session_bladder(cfg, 2)
+    assert s1 is base
+    nw = base.n_wall_verts
+    disp = s2.vertices[:nw] - base.vertices[:nw]
+    moved = np.linalg.norm(disp, axis=1) > 1e-9
+    for les in lesions:
+        dist = np.linalg.norm(base.vertices[:nw] - les.material, axis=1)
+        near = dist < 0.15 * les.diameter_mm + 1.0
+        if les.kind == "papillary":
+            h = np.linalg.norm(disp[near], axis=1).max()
+            assert 0.7 * les.height_mm < h <= les.height_mm + 1e-9
+            assert np.all(disp[near] @ les.normal <= 0)  # into the cavity
+            assert les.height_mm == pytest.approx(min(0.35 * les.diameter_mm, 6.0))
+        else:
+            assert les.height_mm == 0 and not moved[near].any()
+    papillary = [les for les in lesions if les.kind == "papillary"]
+    far = np.min([np.linalg.norm(base.vertices[:nw] - les.material, axis=1) - les.diameter_mm
+                  for les in papillary], axis=0) > 0
+    assert not moved[far].any() and moved.any()
+    assert s2.volume_mm3 < base.volume_mm3  # raised lesions take volume from the cavity
+    assert replace(cfg, lesion_kinds=()).lesion_kinds == () and session_bladder(
+        replace(cfg, lesion_kinds=()), 2) is base  # no papillary lesion: no relief
+
+
+def test_lesion_kinds_paint():
+    """Each kind changes the wall as named: painted/papillary strongly, cis as a low-contrast
+    reddening, scar paler, perivascular red with a vessel beside it that both sessions show."""
+    from cystomap.phantom.lesions import paint_lesions, paint_site_vessels, place_lesions
+    from cystomap.phantom.texture import CubeMap, tangent_frame
+
+    kinds = ("painted", "cis", "scar", "perivascular")
+    cfg = PhantomConfig(cube_face_px=512, lesion_diameters_mm=(12.0, 14.0, 16.0, 18.0),
+                        lesion_kinds=kinds)
+    bladder = base_bladder(cfg)
+    scene = bladder.scene()
+    wall = build_mucosa(cfg, bladder, scene)
+    lesions = place_lesions(cfg, bladder, scene)
+    s1 = CubeMap([wall.levels[0].copy()], wall.n, wall.gloss, params=wall.params)
+    assert paint_site_vessels(s1, lesions, bladder, scene) == 1
+    s2 = CubeMap([s1.levels[0].copy()], s1.n, s1.gloss, params=s1.params)
+    paint_lesions(s2, lesions, bladder, scene)
+    for les in lesions:
+        e1, e2 = tangent_frame(les.normal[None])
+        a = np.linspace(-0.3, 0.3, 15) * les.diameter_mm
+        xy = np.stack(np.meshgrid(a, a), -1).reshape(-1, 2)
+        pts = les.material + xy[:, :1] * e1 + xy[:, 1:] * e2
+        c0, _ = wall.sample(pts)
+        c1, _ = s1.sample(pts)
+        c2, _ = s2.sample(pts)
+        d = np.abs(c2 - c1).max(1)
+        gain = c2.mean(0) / c1.mean(0)
+        # measured (seed 7): max-channel change median painted 51, cis 14 (gain 1.02 0.92
+        # 0.93, Delta E 8), scar 28 (brighter by 20), perivascular 39 (gain 1.02 0.76 0.79)
+        if les.kind == "painted":
+            assert np.median(d) > 25
+        elif les.kind == "cis":  # low contrast, red kept, green and blue lowered
+            assert 7 < np.median(d) < 25 and 0.85 < gain[1] < 0.95 and gain[0] > 0.99
+        elif les.kind == "scar":  # paler and less saturated
+            assert c2.mean() > c1.mean() + 5
+            assert (c2[:, 0] - c2[:, 2]).mean() < (c1[:, 0] - c1[:, 2]).mean()
+        else:
+            assert gain[1] < 0.85 and np.median(d) > 8
+            assert np.array_equal(c0, c1)  # the vessel is outside the lesion
+            # ... and beside it, in both sessions: a ring around the lesion darkened in s1
+            ang = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+            ring = []
+            for rr in np.linspace(0.55, 1.6, 12) * les.diameter_mm:
+                p = les.material + rr * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+                ring.append(np.abs(s1.sample(p)[0] - wall.sample(p)[0]).max(1))
+            ring = np.concatenate(ring)
+            assert (ring > 20).sum() > 90  # measured 191

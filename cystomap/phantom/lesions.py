@@ -271,7 +271,7 @@ def _paint_red_patch(les: Lesion, x: np.ndarray, y: np.ndarray, cur: np.ndarray,
 
 
 def _paint_cis(les: Lesion, x: np.ndarray, y: np.ndarray, cur: np.ndarray) -> np.ndarray:
-    return _paint_red_patch(les, x, y, cur, np.array([1.03, 0.87, 0.89]), 1.2, 0.2)
+    return _paint_red_patch(les, x, y, cur, np.array([1.02, 0.915, 0.93]), 1.2, 0.2)
 
 
 def _paint_perivascular(les: Lesion, x: np.ndarray, y: np.ndarray, cur: np.ndarray) -> np.ndarray:
