@@ -23,11 +23,15 @@ Files written per session (``generate_session``):
   (cos el cos az, cos el sin az, sin el); aperture directions black. Session 2 has lesions.
 * ``seen.png``  same grid: 255 where the wall was in the image and unoccluded in >= 1 good
   frame, else 0.
-* ``lesions.csv``  ``id,x,y,z,nx,ny,nz,diameter_mm,azimuth_deg,elevation_deg`` (session 2's
-  frame; az/el about its barycentre); header only for session 1.
+* ``lesions.csv``  ``id,x,y,z,nx,ny,nz,diameter_mm,azimuth_deg,elevation_deg,kind,site,
+  height_mm`` (session 2's frame; az/el about its barycentre; kind/site see
+  ``cystomap.phantom.lesions``; height_mm = relief of papillary lesions, their centre is on
+  top of it); header only for session 1.
 * ``truth.json``  seed, session, sizes, barycentre, extent_mm, area_mm2, volume_ml,
   seen_fraction (area-weighted), aperture, deformation, gain, bad frames, per-frame
-  distances / exposure / blur, rotation per frame, render seconds, the config.
+  distances / exposure / blur, rotation per frame, render seconds, the config; ``lens``
+  (rendered vs given camera), ``photometry`` (per-session draws), ``texture`` (mode, family,
+  parameters, mosaic tiles).
 """
 
 from cystomap.phantom.config import PhantomConfig

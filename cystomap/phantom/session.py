@@ -449,7 +449,9 @@ def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, a
             f"^(1/2.2) * gain, optical blur sigma {optical_px:.3g} px (0.55 px at the 1280x720"
             " 76-degree camera: a fixed angle), + N(0, noise_sigma); light at the tip; albedo"
             " prefiltered by each pixel's footprint on the wall (mipmaps); albedo.png = the"
-            " albedo of this model"),
+            " albedo of this model; with photometric_variation > 0 the exponents 2 and 3, the"
+            " exposure target and smoothing and a per-channel white balance (linear) come from"
+            " truth.json photometry"),
         **render_s,
         "render_seconds_note": "render_seconds = scene, texture, trajectory and all frames"
                                " (before writing the truth files); frames_seconds = frames only",

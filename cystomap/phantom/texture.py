@@ -872,26 +872,30 @@ def build_mosaic(cfg: PhantomConfig, source: CubeMap, radius: RadiusTable) -> Cu
     )
     tile = source.tile
     level0 = np.empty_like(source.levels[0])
+    chunk = 1 << 20  # texels at a time (bounded memory at 2048 texels per face)
     for face in range(6):
-        d, side = _face_grid(face, n, 0, 0)
-        w = d * radius(d)[:, None]
-        k = mosaic.cell(d)
-        rel = w - centre[k]
-        u = np.einsum("ij,ij->i", rel, e1[k])
-        v = np.einsum("ij,ij->i", rel, e2[k])
-        c, s = np.cos(mosaic.angle[k]), np.sin(mosaic.angle[k])
-        x = (c * u + s * v) / mosaic.stretch[k, 0]
-        y = (-s * u + c * v) / mosaic.stretch[k, 1]
-        x = np.where(mosaic.mirror[k], -x, x)
-        mx = ((x / size + 0.5) * px - 0.5).astype(np.float32)
-        my = ((y / size + 0.5) * px - 0.5).astype(np.float32)
-        out = np.empty((len(d), 3), np.float32)
-        pid = mosaic.patch[k]
-        for i in range(cfg.mosaic_patches):
-            sel = np.flatnonzero(pid == i)
-            if len(sel):
-                out[sel] = _remap_reflect(patches[i], mx[sel], my[sel])
-        out *= mosaic.tint[k].astype(np.float32)
+        dirs, side = _face_grid(face, n, 0, 0)
+        out = np.empty((len(dirs), 3), np.float32)
+        for j in range(0, len(dirs), chunk):
+            d = dirs[j:j + chunk]
+            k = mosaic.cell(d)
+            rel = d * radius(d)[:, None] - centre[k]
+            u = np.einsum("ij,ij->i", rel, e1[k])
+            v = np.einsum("ij,ij->i", rel, e2[k])
+            c, s = np.cos(mosaic.angle[k]), np.sin(mosaic.angle[k])
+            x = (c * u + s * v) / mosaic.stretch[k, 0]
+            y = (-s * u + c * v) / mosaic.stretch[k, 1]
+            x = np.where(mosaic.mirror[k], -x, x)
+            mx = ((x / size + 0.5) * px - 0.5).astype(np.float32)
+            my = ((y / size + 0.5) * px - 0.5).astype(np.float32)
+            part = np.empty((len(d), 3), np.float32)
+            pid = mosaic.patch[k]
+            for i in range(cfg.mosaic_patches):
+                sel = np.flatnonzero(pid == i)
+                if len(sel):
+                    part[sel] = _remap_reflect(patches[i], mx[sel], my[sel])
+            part *= mosaic.tint[k].astype(np.float32)
+            out[j:j + chunk] = part
         r0, c0 = (face // 3) * tile, (face % 3) * tile
         level0[r0:r0 + tile, c0:c0 + tile] = np.clip(out + 0.5, 0, 255).astype(np.uint8).reshape(side, side, 3)
     cube = CubeMap([level0], n, source.gloss, mosaic, source.params)
