@@ -300,3 +300,58 @@ def test_missing_inputs_are_named(sessions, tmp_path) -> None:
     with pytest.raises(InputError, match=r"nope\.ply"):
         compare_sessions(paths, bad, tmp_path / "out", CompareConfig())
     assert not (tmp_path / "out").exists()
+
+
+def _true_pixel(truth: Path, frame: int, point: np.ndarray) -> np.ndarray:
+    """Pixel (distorted, as in the video) of a world point in a frame, from its true pose."""
+    from scipy.spatial.transform import Rotation
+
+    row = pd.read_csv(truth / "poses.csv").set_index("frame").loc[frame]
+    r_cw = Rotation.from_quat([row.qx, row.qy, row.qz, row.qw]).as_matrix()
+    p_cam = r_cw.T @ (point - np.array([row.tx, row.ty, row.tz]))
+    assert p_cam[2] > 0, "behind the camera"
+    return CAMERA.project(p_cam[None])[0]
+
+
+def test_findback_frames_see_each_lesion(sessions, tmp_path) -> None:
+    """The frame listed first for each found lesion, in B and in A, shows the lesion's true
+    centre (its true pose projects it into the image, near the reported pixel); the crops
+    exist at the configured size."""
+    import cv2
+
+    crop_px = 160
+    out, _ = _run(sessions, "s1", "s2", tmp_path / "cmp", findback_crop_px=crop_px)
+    table = pd.read_csv(out / "changes.csv")
+    fb = pd.read_csv(out / "findback.csv")
+    lesions = pd.read_csv(sessions["s2"] / "truth" / "lesions.csv")
+    score = _score(sessions, "s2", out)["lesions"]
+    found = [e for e in score["lesions"] if e["detected"]]
+    assert len(found) >= 4
+    frames_b = pd.read_csv(sessions["s2"] / "frames" / "frames.csv").set_index("frame")
+    offsets = []
+    for e in found:
+        rid = int(table["id"].iloc[e["detection_row"]])
+        centre = lesions.loc[lesions["diameter_mm"] == e["diameter_mm"], ["x", "y", "z"]]
+        centre = centre.to_numpy(float)[0]  # world = session A's frame; B's truth shares it
+        for key, session in (("b", "s2"), ("a", "s1")):
+            rows = fb[(fb["id"] == rid) & (fb["session"] == key)].sort_values("rank")
+            assert 1 <= len(rows) <= 3, (rid, key)
+            best = rows.iloc[0]
+            assert best["score"] == 1.0 and (rows["score"] <= 1.0).all()
+            assert best["image"] == f"f{int(best['frame']):06d}.png"
+            uv = _true_pixel(sessions[session] / "truth", int(best["frame"]), centre)
+            assert 0 <= uv[0] <= CAMERA.width - 1 and 0 <= uv[1] <= CAMERA.height - 1, (rid, key)
+            offsets.append(float(np.hypot(*(uv - best[["u", "v"]].to_numpy(float)))))
+            if key == "b":
+                assert abs(best["time_s"] - frames_b.loc[int(best["frame"]), "time_s"]) < 1e-3
+            crop = cv2.imread(str(out / best["crop"]))
+            assert crop is not None and crop.shape == (crop_px, crop_px, 3)
+        for name in (f"change{rid}_atlas_a.png", f"change{rid}_atlas_b.png"):
+            img = cv2.imread(str(out / "findback" / name))
+            assert img is not None and img.shape == (crop_px, crop_px, 3), name
+            # the region is outlined (magenta, BGR 200 40 255)
+            assert (np.abs(img.astype(int) - (200, 40, 255)).sum(axis=2) < 60).any(), name
+    print("findback: reported vs true centre pixel (px):", np.round(sorted(offsets), 1))
+    assert np.median(offsets) < 8 and max(offsets) < 30, offsets
+    summary = json.loads((out / "compare.json").read_text())
+    assert summary["findback"]["original_frames"] == {"a": "video frame", "b": "video frame"}
