@@ -11,7 +11,7 @@ image and the field-of-view mask, faces the camera and is not occluded by the me
 weight favours frontal, close, central and sharp views (sharpness from the frames stage's
 ``frames.csv``) and fades out at the mask edge. A frame's score is the mean weight over the
 region's points (0 for points it does not see), counted only when it sees the region's
-centroid: the whole change, large, central and frontal scores highest.
+centroid (unless no frame does): the whole change, large, central and frontal scores highest.
 
 The frames that see the centroid form *visits* (runs of consecutive registered frames in video
 order); the best frame of each visit is listed, the visits ranked by that score, at most
@@ -26,8 +26,11 @@ Outputs (written by :meth:`FindBack.write`):
   session, 1 = best), ``visible_share`` (share of the region the frame sees),
   ``incidence_deg`` and ``distance_mm`` (at the centroid), ``centre_offset`` (distance of the
   centroid from the image centre / half the image diagonal), ``u, v`` (the centroid in the
-  original video frame, pixels, centres at integers), ``crop`` (file of the frame crop, rank 1
-  only); header only when there is no change;
+  original video frame, pixels, centres at integers), ``centroid_seen`` (False when no frame
+  of the session sees the centroid, which then lies on wall that session did not film, e.g. a
+  strip the detection bridged: the frames are then scored on the part of the region they see,
+  and ``u, v`` is the centre of that part), ``crop`` (file of the frame crop, rank 1 only);
+  header only when there is no change;
 * ``findback/change{id}_atlas_a.png`` / ``_atlas_b.png``: square crops (``findback_crop_px``)
   of A's and B's atlas about the site, the region outlined in magenta (A: where the region's
   points fall in A's atlas);
@@ -59,7 +62,7 @@ log = logging.getLogger(__name__)
 
 FINDBACK_COLUMNS = ("id", "session", "rank", "frame", "time_s", "image", "score",
                     "visible_share", "incidence_deg", "distance_mm", "centre_offset", "u", "v",
-                    "crop")
+                    "centroid_seen", "crop")
 HIGHLIGHT = (255, 40, 200)  # the outline colour of changes.png
 FRAME_INDEX = re.compile(r"(\d+)\.[A-Za-z0-9]+$")  # frames stage: f000123.png = frame 123
 MAX_SAMPLES = 300  # region points scored per frame (a seeded subsample of larger regions)
@@ -157,21 +160,27 @@ class SessionFrames:
         return self.geometry.observe(view, samples, np.arange(len(samples)),  # type: ignore[arg-type]
                                      self.depths[i])
 
-    def _may_see(self, centroid: np.ndarray) -> np.ndarray:
-        """Views whose image contains the centroid (cheap test before the depth maps)."""
+    def _may_see(self, points: np.ndarray) -> np.ndarray:
+        """Views whose image contains any of ``points`` (cheap test before the depth maps)."""
         out = np.zeros(len(self.views), bool)
         for i, v in enumerate(self.views):
-            p = v.to_camera(centroid[None])[0]
-            if p[2] <= 1e-6:
+            p = v.to_camera(points)
+            front = p[:, 2] > 1e-6
+            if not front.any():
                 continue
-            u = v.K[0, 0] * p[0] / p[2] + v.K[0, 2]
-            w = v.K[1, 1] * p[1] / p[2] + v.K[1, 2]
-            out[i] = 0 <= u <= v.width - 1 and 0 <= w <= v.height - 1
+            p = p[front]
+            u = v.K[0, 0] * p[:, 0] / p[:, 2] + v.K[0, 2]
+            w = v.K[1, 1] * p[:, 1] / p[:, 2] + v.K[1, 2]
+            out[i] = bool(((u >= 0) & (u <= v.width - 1) & (w >= 0) & (w <= v.height - 1)).any())
         return out
 
-    def scores(self, site: Site, rng: np.random.Generator) -> tuple[np.ndarray, list[Any]]:
-        """Per view: the score (0 when it does not see the centroid) and its observation of
-        [centroid, samples] (None when not scored)."""
+    def scores(self, site: Site, rng: np.random.Generator,
+               ) -> tuple[np.ndarray, list[Any], bool]:
+        """Per view: the score and its observation of [centroid, samples] (None when not
+        scored), and whether the scores require the centroid seen. Views that do not see
+        the centroid score 0, unless no view sees it (it lies on wall the session did not
+        film, e.g. a strip bridged by the detection): then every view seeing part of the
+        region is scored."""
         pts, nrm = site.points, site.normals
         if len(pts) > MAX_SAMPLES:
             keep = np.sort(rng.choice(len(pts), MAX_SAMPLES, replace=False))
@@ -179,16 +188,20 @@ class SessionFrames:
         samples = PointSamples.of(np.vstack([site.centroid[None], pts]),
                                   np.vstack([site.normal[None], nrm]))
         score = np.zeros(len(self.views))
+        sees_centroid = np.zeros(len(self.views), bool)
         obs: list[Any] = [None] * len(self.views)
-        for i in np.flatnonzero(self._may_see(site.centroid)):
+        for i in np.flatnonzero(self._may_see(np.vstack([site.centroid[None], pts]))):
             o = self.observe(int(i), samples)
-            if not o["ok"][0]:
+            if not o["ok"].any():
                 continue
             w = view_weights(o, self.views[i], self.settings, float(self.sharp[i]), 1.0)
             w = np.where(o["ok"], w, 0.0)
             score[i] = float(w[1:].mean()) if len(w) > 1 else float(w[0])
+            sees_centroid[i] = bool(o["ok"][0])
             obs[i] = o
-        return score, obs
+        if sees_centroid.any():
+            return np.where(sees_centroid, score, 0.0), obs, True
+        return score, obs, False
 
 
 def _identity(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -347,9 +360,11 @@ def atlas_crop(atlas: Any, centroid: np.ndarray, points: np.ndarray, out_px: int
     return crop_outlined(rgb, (cc, cr), (hx, hy), uv, out_px, wrap_columns=True)
 
 
-def frame_crop(session: SessionFrames, i: int, site: Site, out_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Crop of frame ``i``'s original image about the site's centroid, the part of the
-    region it sees outlined; and the centroid in the original image."""
+def frame_crop(session: SessionFrames, i: int, site: Site, out_px: int,
+               centroid_seen: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Crop of frame ``i``'s original image about the site's centroid (or, when the frame
+    does not see it, the centre of the part of the region it sees), that part outlined;
+    and that centre in the original image."""
     import cv2
 
     samples = PointSamples.of(np.vstack([site.centroid[None], site.points]),
@@ -361,8 +376,8 @@ def frame_crop(session: SessionFrames, i: int, site: Site, out_px: int) -> tuple
         raise InputError(f"{session.original[i]}: cannot read image")
     img = bgr[..., ::-1]
     h, w = img.shape[:2]
-    centre = uv[0]
     seen = uv[1:][o["ok"][1:]]
+    centre = uv[0] if centroid_seen or not len(seen) else seen.mean(axis=0)
     extent = float(np.abs(seen - centre).max()) if len(seen) else 0.0
     half = min(max(CROP_MARGIN * extent, 0.08 * math.hypot(w, h)), min(w, h) / 2)
     cx = float(np.clip(centre[0], half, w - 1 - half)) if 2 * half < w else (w - 1) / 2
@@ -444,18 +459,24 @@ def find_back(regions: list[Any], grid: Any, a_points: np.ndarray, atlas_a: Any,
             s = sessions[key]
             if not len(site.points):
                 continue
-            score, obs = s.scores(site, rng)
+            score, obs, centroid_seen = s.scores(site, rng)
             best = visits(score)[:n_frames]
             if not best:
                 continue
             top = score[best[0]]
             crop_name = f"change{g.id}_frame_{key}.png"
-            crop, centre0 = frame_crop(s, best[0], site, crop_px)
+            crop, centre0 = frame_crop(s, best[0], site, crop_px, centroid_seen)
             out.crops[crop_name] = crop
             listed[key] += 1
             for rank, i in enumerate(best, start=1):
                 o = obs[i]
-                uv = centre0 if rank == 1 else s.to_original(o["u"][:1], o["v"][:1])[0]
+                if rank == 1:
+                    uv = centre0
+                elif centroid_seen:
+                    uv = s.to_original(o["u"][:1], o["v"][:1])[0]
+                else:
+                    ok = o["ok"][1:]
+                    uv = s.to_original(o["u"][1:][ok], o["v"][1:][ok]).mean(axis=0)
                 v = s.views[i]
                 off = math.hypot(float(o["u"][0]) - v.K[0, 2], float(o["v"][0]) - v.K[1, 2])
                 out.rows.append({
@@ -468,6 +489,7 @@ def find_back(regions: list[Any], grid: Any, a_points: np.ndarray, atlas_a: Any,
                     "distance_mm": float(o["dist"][0]),
                     "centre_offset": off / (math.hypot(v.width, v.height) / 2),
                     "u": float(uv[0]), "v": float(uv[1]),
+                    "centroid_seen": centroid_seen,
                     "crop": f"findback/{crop_name}" if rank == 1 else ""})
     out.info = {"changes": len(regions), "seen_in_a": listed["a"], "seen_in_b": listed["b"],
                 "frames_per_change": n_frames, "crop_px": crop_px,
