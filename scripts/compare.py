@@ -9,7 +9,7 @@ from cystomap.settings import from_mapping
 
 sm = snakemake  # type: ignore[name-defined]  # noqa: F821
 with log_to(sm.log[0]):
-    a, b = ([Path(sm.input[f"{s}_{k}"]) for k in ("sfm", "preprocessed", "mesh", "atlas")] for s in "ab")
+    a, b = ([Path(sm.input[f"{s}_{k}"]) for k in ("sfm", "preprocessed", "mesh", "atlas", "frames")] for s in "ab")
     compare_sessions(
         SessionPaths(*a),
         SessionPaths(*b),

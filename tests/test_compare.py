@@ -201,6 +201,26 @@ def test_config_rejects_bad_values() -> None:
         CompareConfig(threshold_k=0)
 
 
+def test_findback_visits_and_a_crop_across_the_seam() -> None:
+    """The best frame of each run of frames that see a site, best runs first; an atlas crop
+    about a site on the seam (azimuth ±180°) shows the whole region, centred."""
+    from cystomap.compare.findback import HIGHLIGHT, crop_outlined, visits
+
+    assert visits(np.array([0, 0.2, 0.5, 0, 0, 0.9, 0.1, 0, 0.3])) == [5, 2, 8]
+    assert visits(np.zeros(4)) == []
+    img = np.full((64, 128, 3), 120, np.uint8)
+    t = np.linspace(0, 2 * np.pi, 400)
+    rr = np.linspace(0, 6, 13)
+    uv = np.array([(r * np.cos(a), 32 + r * np.sin(a)) for r in rr for a in t])
+    uv[:, 0] = np.mod(uv[:, 0], 128)  # the disc straddles column 0 / 127
+    crop = crop_outlined(img, (0.0, 32.0), (16, 16), uv, 66, wrap_columns=True)
+    assert crop.shape == (66, 66, 3)
+    ys, xs = np.nonzero(np.abs(crop.astype(int) - HIGHLIGHT).sum(axis=2) < 90)
+    assert len(xs) > 50
+    assert abs(xs.mean() - 32.5) < 2 and abs(ys.mean() - 32.5) < 2
+    assert 12 <= xs.max() - xs.min() <= 32  # a disc of 12 px in a 33 px window at 2x
+
+
 # --------------------------------------------------------------------------- phantom pairs
 
 
@@ -300,3 +320,62 @@ def test_missing_inputs_are_named(sessions, tmp_path) -> None:
     with pytest.raises(InputError, match=r"nope\.ply"):
         compare_sessions(paths, bad, tmp_path / "out", CompareConfig())
     assert not (tmp_path / "out").exists()
+
+
+def _true_pixel(truth: Path, frame: int, point: np.ndarray) -> np.ndarray:
+    """Pixel (distorted, as in the video) of a world point in a frame, from its true pose."""
+    from scipy.spatial.transform import Rotation
+
+    row = pd.read_csv(truth / "poses.csv").set_index("frame").loc[frame]
+    r_cw = Rotation.from_quat([row.qx, row.qy, row.qz, row.qw]).as_matrix()
+    p_cam = r_cw.T @ (point - np.array([row.tx, row.ty, row.tz]))
+    assert p_cam[2] > 0, "behind the camera"
+    return CAMERA.project(p_cam[None])[0]
+
+
+def test_findback_frames_see_each_lesion(sessions, tmp_path) -> None:
+    """The frame listed first for each found lesion, in B and in A, shows the lesion's true
+    centre (its true pose projects it into the image, near the reported pixel); the crops
+    exist at the configured size."""
+    import cv2
+
+    crop_px = 160
+    out, _ = _run(sessions, "s1", "s2", tmp_path / "cmp", findback_crop_px=crop_px)
+    table = pd.read_csv(out / "changes.csv")
+    fb = pd.read_csv(out / "findback.csv")
+    lesions = pd.read_csv(sessions["s2"] / "truth" / "lesions.csv")
+    score = _score(sessions, "s2", out)["lesions"]
+    found = [e for e in score["lesions"] if e["detected"]]
+    assert len(found) >= 4
+    frames_b = pd.read_csv(sessions["s2"] / "frames" / "frames.csv").set_index("frame")
+    offsets = []
+    for e in found:
+        rid = int(table["id"].iloc[e["detection_row"]])
+        centre = lesions.loc[lesions["diameter_mm"] == e["diameter_mm"], ["x", "y", "z"]]
+        centre = centre.to_numpy(float)[0]  # world = session A's frame; B's truth shares it
+        for key, session in (("b", "s2"), ("a", "s1")):
+            rows = fb[(fb["id"] == rid) & (fb["session"] == key)].sort_values("rank")
+            assert 1 <= len(rows) <= 3, (rid, key)
+            best = rows.iloc[0]
+            assert best["score"] == 1.0 and (rows["score"] <= 1.0).all()
+            assert best["image"] == f"f{int(best['frame']):06d}.png"
+            assert best["visible_share"] > 0
+            crop = cv2.imread(str(out / best["crop"]))
+            assert crop is not None and crop.shape == (crop_px, crop_px, 3)
+            if not best["centroid_seen"]:  # the centroid on wall this session did not film
+                continue
+            uv = _true_pixel(sessions[session] / "truth", int(best["frame"]), centre)
+            assert 0 <= uv[0] <= CAMERA.width - 1 and 0 <= uv[1] <= CAMERA.height - 1, (rid, key)
+            offsets.append(float(np.hypot(*(uv - best[["u", "v"]].to_numpy(float)))))
+            if key == "b":
+                assert abs(best["time_s"] - frames_b.loc[int(best["frame"]), "time_s"]) < 1e-3
+        for name in (f"change{rid}_atlas_a.png", f"change{rid}_atlas_b.png"):
+            img = cv2.imread(str(out / "findback" / name))
+            assert img is not None and img.shape == (crop_px, crop_px, 3), name
+            # the region is outlined (magenta, BGR 200 40 255)
+            assert (np.abs(img.astype(int) - (200, 40, 255)).sum(axis=2) < 60).any(), name
+    print("findback: reported vs true centre pixel (px):", np.round(sorted(offsets), 1))
+    assert len(offsets) >= 6, "the centroid seen for most lesions in both sessions"
+    assert np.median(offsets) < 8 and max(offsets) < 30, offsets
+    summary = json.loads((out / "compare.json").read_text())
+    assert summary["findback"]["original_frames"] == {"a": "video frame", "b": "video frame"}

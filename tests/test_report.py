@@ -273,3 +273,43 @@ def test_geometry_json_round_trips():
     back = np.array(g["origin"]) + q * np.array(g["step"])
     assert np.abs(back - v).max() < 0.002 and g["index_bits"] == 16
     assert np.frombuffer(base64.b64decode(g["faces"]), "<u2").tolist() == [0, 1, 2]
+
+
+def test_each_change_has_a_card_with_its_crops_and_frames(tmp_path):
+    """compare's find-back (findback.csv, findback/*.png) becomes one card per change: the four
+    crops embedded, the frames of each session with their video index and time."""
+    from cystomap.compare.findback import FINDBACK_COLUMNS
+
+    sessions, comparisons = make_study(tmp_path, names=("pre", "post"))
+    d = comparisons[0].compare
+    (d / "findback").mkdir()
+    rng = np.random.default_rng(0)
+    for ident in (1, 2):
+        for crop in ("atlas_a", "atlas_b", "frame_a", "frame_b"):
+            if ident == 2 and crop == "frame_a":
+                continue  # no frame of A saw change 2's site
+            imwrite_rgb(d / "findback" / f"change{ident}_{crop}.png",
+                        rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    rows = [(1, "b", 1, 42, 4.2), (1, "b", 2, 80, 8.0), (1, "a", 1, 17, 1.7), (2, "b", 1, 5, 0.5)]
+    with open(d / "findback.csv", "w") as fh:
+        fh.write(",".join(FINDBACK_COLUMNS) + "\n")
+        for ident, key, rank, frame, t in rows:
+            r = {"id": ident, "session": key, "rank": rank, "frame": frame, "time_s": t,
+                 "image": f"f{frame:06d}.png", "score": 1.0 / rank}
+            fh.write(",".join(str(r.get(c, "")) for c in FINDBACK_COLUMNS) + "\n")
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    section = text[text.index("id='compare-pre-post'"):]
+    section = section[:section.index("</section>")]
+    assert section.count("<article class='card'") == 2
+    card1 = section[section.index("id='change-pre-post-1'"):section.index("id='change-pre-post-2'")]
+    card2 = section[section.index("id='change-pre-post-2'"):]
+    assert len(re.findall(r"<img [^>]*src='data:image/", card1)) == 4
+    assert len(re.findall(r"<img [^>]*src='data:image/", card2)) == 3
+    assert "Frames of post that see it best: frame 42 (4.2 s), frame 80 (8.0 s)" in card1
+    assert "Frames of pre that saw the same site: frame 17 (1.7 s)" in card1
+    assert "Frames of pre that saw the same site: none" in card2
+    assert "Before: pre's atlas at the site" in card1 and "post, frame 42 (4.2 s)" in card1
+    assert "diameter 10.1 mm" in card1
+    capped = build_report("p", sessions, comparisons, tmp_path / "c.html",
+                          ReportConfig(image_width=200, model_vertices=3000, max_change_cards=1))
+    assert capped.read_text().count("<article class='card'") == 1

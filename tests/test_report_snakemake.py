@@ -18,6 +18,7 @@ CAPTIONS = (
     "Changes found between sessions s1 and s2 of subject <strong>phantom</strong>",
     "Changes table, sessions s1 \\u2192 s2 of subject <strong>phantom</strong>",
     "Landmarks marked in session s1 of subject <strong>phantom</strong>",
+    "Find-back, sessions s1 \\u2192 s2 of subject <strong>phantom</strong>",
     "Study report of subject <strong>phantom</strong>",
     "cystomap turns monocular cystoscopy videos",  # the workflow description
 )
@@ -34,6 +35,9 @@ def test_snakemake_report_holds_atlases_change_maps_and_tables(phantom_study, tm
     assert files["atlas.png"] == 2 and files["coverage.png"] == 2
     assert files["difference.png"] == 1 and files["changes.png"] == 1 and files["changes.csv"] == 1
     assert files["landmarks.png"] == 1 and files["landmarks.csv"] == 1
+    assert files["findback.csv"] == 1
+    crops = [n for n in files if n.startswith("change") and n.endswith(("_a.png", "_b.png"))]
+    assert crops and all(files[n] == 1 for n in crops)  # findback/change{id}_{atlas,frame}_{a,b}.png
     assert files["evaluation.md"] == 1
     assert files["report.html"] == 1  # the study report itself
     assert files["texture.png"] == 0  # only the files named by the patterns

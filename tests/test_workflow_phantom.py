@@ -53,6 +53,14 @@ def test_phantom_study_runs_end_to_end(phantom_study):
     marks = pd.read_csv(compare / "landmarks.csv")
     assert list(marks["name"]) == ["centre"] and list(marks["status"]) == ["ok"]
     assert (tmp_path / "results/phantom/report.html").stat().st_size > 0
+    # every change found back: B's best frame (a frame of the video) and its crops, a card each
+    changes, found = pd.read_csv(compare / "changes.csv"), pd.read_csv(compare / "findback.csv")
+    best_b = found[(found["session"] == "b") & (found["rank"] == 1)]
+    assert sorted(best_b["id"]) == sorted(changes["id"])
+    assert all((compare / c).is_file() for c in best_b["crop"])
+    assert (best_b["time_s"] - best_b["frame"] / 10.0).abs().max() < 1e-3  # rendered at 10 fps
+    report = (tmp_path / "results/phantom/report.html").read_text()
+    assert report.count("<article class='card'") == min(len(changes), 20)
     assert wf.planned_jobs() == {}
     try:
         wf.write_config(phantom_config(seed=8))

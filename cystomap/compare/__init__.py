@@ -13,6 +13,8 @@ Following the reference study's inter-session comparison:
 * :mod:`cystomap.compare.changes`: data-derived threshold, cleaning, regions measured on the
   wall (centroid, area, equivalent diameter);
 * :mod:`cystomap.compare.landmarks`: sites marked in session A found back in session B;
+* :mod:`cystomap.compare.findback`: each change found back in the videos: the frames of B
+  that see it best and of A that saw the same site, crops of both atlases and frames;
 * :mod:`cystomap.compare.stage`: :class:`CompareConfig`, :class:`SessionPaths` and
   :func:`compare_sessions` (outputs described there).
 """

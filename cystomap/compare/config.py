@@ -168,6 +168,12 @@ class CompareConfig:
     model: bool = True
     # threads for descriptors and ray casting
     threads: int = 2
+    # --- find-back (findback.csv, findback/) ---
+    # per change and session, the best frame of at most this many separate visits of the
+    # site (runs of consecutive frames that see it) are listed (0 = no find-back)
+    findback_frames: int = 3
+    # side (pixels) of the square crops of both atlases and of the best frame of each session
+    findback_crop_px: int = 256
 
     def __post_init__(self) -> None:
         if self.transform not in TRANSFORMS:
@@ -212,6 +218,8 @@ class CompareConfig:
             "morphology_mm >= 0": self.morphology_mm >= 0,
             "outline_px >= 1": self.outline_px >= 1,
             "1 <= threads <= 64": 1 <= self.threads <= 64,
+            "findback_frames >= 0": self.findback_frames >= 0,
+            "32 <= findback_crop_px <= 2048": 32 <= self.findback_crop_px <= 2048,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

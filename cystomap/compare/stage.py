@@ -29,6 +29,9 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
 * ``side_by_side.png``: A's atlas (left) and B's atlas (right), for manual comparison;
 * ``landmarks.csv`` and ``landmarks.png`` when landmarks are given (A → B, see
   :mod:`cystomap.compare.landmarks`);
+* ``findback.csv`` and ``findback/``: per change, the frames of B that see it best and the
+  frames of A that saw the same site (video frame index and time), and crops of both atlases
+  and of the best original frame of each session (see :mod:`cystomap.compare.findback`);
 * ``compare.json``: summary (registered, counts, threshold and noise level, regions
   dropped by each check, compared area, dense-flow correction, directions of the bladder
   neck (``opening_directions``), timings, settings).
@@ -65,6 +68,7 @@ from cystomap.compare.difference import (
     warp_points,
 )
 from cystomap.compare.features import point_features
+from cystomap.compare.findback import FindBack, find_back
 from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
 from cystomap.compare.registration import Registration, register
 from cystomap.errors import InputError, StageError
@@ -84,13 +88,14 @@ class SessionPaths:
     preprocessed: Path  # enhanced/ frames (preprocess stage)
     mesh: Path  # surface.ply (mesh stage)
     atlas: Path  # atlas.png + atlas.json (atlas stage)
+    frames: Path | None = None  # frames/ (frames stage: original frames, frames.csv); optional
 
     @classmethod
     def from_root(cls, root: Path) -> SessionPaths:
         """The standard layout: ``root/{sfm,preprocessed,mesh/surface.ply,atlas}``."""
         root = Path(root)
         return cls(root / "sfm", root / "preprocessed", root / "mesh" / "surface.ply",
-                   root / "atlas")
+                   root / "atlas", root / "frames")
 
     def check(self, what: str) -> None:
         for p, kind in ((self.sfm, "SfM model directory"), (self.preprocessed,
@@ -146,6 +151,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     regions: list[Region] = []
     diff = None
     det_info: dict[str, Any] = {}
+    found = FindBack()
     if reg.registered:
         try:
             diff, grid_info = _difference(atlas_a, atlas_b, reg, cfg)
@@ -156,6 +162,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             summary["registered"] = False
         else:
             reg_json["dense_flow"] = grid_info.pop("flow", {"flow": False})
+            a_points = grid_info.pop("a_points")
             t = lap("difference", t)
             verify = None
             if cfg.max_inconsistency > 0:
@@ -166,6 +173,9 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
             t = lap("changes", t)
             summary.update(grid_info)
+            found = find_back(regions, diff.grid, a_points, atlas_a, atlas_b, a, b,
+                              cfg.findback_frames, cfg.findback_crop_px, cfg.seed)
+            t = lap("findback", t)
     if not reg.registered:
         log.warning("compare: the sessions could not be co-registered: %s. No changes are "
                     "reported; side_by_side.png shows both atlases for manual comparison.",
@@ -176,6 +186,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     with atomic_dir(out_dir) as tmp:
         write_json(tmp / "registration.json", reg_json)
         _write_csv(tmp / "changes.csv", CHANGE_COLUMNS, [g.row() for g in regions])
+        found.write(tmp)
         imwrite_rgb(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
         if diff is not None:
             imwrite_rgb(tmp / "difference.png", difference_image(diff))
@@ -193,6 +204,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             changes=len(regions),
             detection={k: v for k, v in det_info.items()},
             landmarks=len(lm_rows),
+            findback=found.info,
             seconds=times,
             config=asdict(cfg),
         )
@@ -208,7 +220,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
 
 def _paths(p: Any) -> SessionPaths:
     if isinstance(p, SessionPaths):
-        return SessionPaths(Path(p.sfm), Path(p.preprocessed), Path(p.mesh), Path(p.atlas))
+        return SessionPaths(Path(p.sfm), Path(p.preprocessed), Path(p.mesh), Path(p.atlas),
+                            None if p.frames is None else Path(p.frames))
     if isinstance(p, str | Path):
         return SessionPaths.from_root(Path(p))
     raise InputError(f"expected SessionPaths or a session directory, got {p!r}")
@@ -296,7 +309,7 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
     info = {"grid": {"width": shape[1], "height": shape[0],
                      "mm_per_px": grid.mm_per_px_y},
             "supported_share_of_b_wall": support_share,
-            "difference": diff.info, "flow": flow_info}
+            "difference": diff.info, "flow": flow_info, "a_points": pa}
     return diff, info
 
 

@@ -22,6 +22,9 @@ class ReportConfig:
     # The changes table lists at most this many regions (the highest scores; the rest are
     # counted).
     max_table_rows: int = 100
+    # Per comparison, at most this many changes (the highest scores) get a card with the
+    # crops and frames compare found them back in (findback.csv, findback/).
+    max_change_cards: int = 20
 
     def __post_init__(self) -> None:
         checks = {
@@ -29,6 +32,7 @@ class ReportConfig:
             "1 <= jpeg_quality <= 100": 1 <= self.jpeg_quality <= 100,
             "500 <= model_vertices <= 1000000": 500 <= self.model_vertices <= 1_000_000,
             "max_table_rows >= 1": self.max_table_rows >= 1,
+            "max_change_cards >= 0": self.max_change_cards >= 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

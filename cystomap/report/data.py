@@ -1,7 +1,8 @@
 """What the report shows, read from the stage outputs of one subject.
 
 Every figure comes from a file a stage wrote (``frames.json``, ``sfm/quality.json``,
-``mesh.json``, ``atlas.json``, ``registration.json``, ``compare.json``, ``changes.csv``). A
+``mesh.json``, ``atlas.json``, ``registration.json``, ``compare.json``, ``changes.csv``,
+``findback.csv``). A
 missing or unreadable JSON file leaves its figures empty ("—" in the report) with a warning,
 so one damaged summary does not hide the rest; missing images are an error.
 """
@@ -160,6 +161,7 @@ class ComparisonSummary:
     residual_mm: float | None = None  # median inlier residual after the spline
     compared_share: float | None = None
     changes: list[dict[str, Any]] = field(default_factory=list)
+    findback: list[dict[str, Any]] = field(default_factory=list)  # rows of findback.csv
 
     @property
     def key(self) -> str:
@@ -189,6 +191,8 @@ def load_comparison(inputs: ComparisonInputs) -> ComparisonSummary:
     c.residual_mm = _find_residual(reg)
     c.compared_share = _find_compared(summary)
     c.changes = read_changes(d / "changes.csv")
+    if (d / "findback.csv").is_file():  # compare's find-back (absent in older outputs)
+        c.findback = read_changes(d / "findback.csv")
     return c
 
 

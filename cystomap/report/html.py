@@ -57,6 +57,16 @@ class SessionPage:
 
 
 @dataclass
+class ChangeCard:
+    """One change found back: its row of changes.csv, its crops (atlas_a, atlas_b, frame_a,
+    frame_b) and the frames that show it (rows of findback.csv by session, best first)."""
+
+    change: dict[str, Any]
+    crops: dict[str, Embedded] = field(default_factory=dict)
+    frames: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+
+
+@dataclass
 class ComparisonPage:
     summary: ComparisonSummary
     units: str
@@ -64,6 +74,7 @@ class ComparisonPage:
     hrefs: dict[str, str] = field(default_factory=dict)
     view: str | None = None
     max_rows: int = 100
+    cards: list[ChangeCard] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -264,6 +275,40 @@ def changes_table(c: ComparisonPage) -> str:
             f"{more}")
 
 
+def _frame_text(row: dict[str, Any]) -> str:
+    frame = row.get("frame")
+    label = f"frame {int(frame)}" if isinstance(frame, float) else f"image {row.get('image', '?')}"
+    t = row.get("time_s")
+    return label + (f" ({fmt(t, 1, ' s')})" if isinstance(t, float) else "")
+
+
+def change_card(card: ChangeCard, a: str, b: str, units: str) -> str:
+    """A change's card: before / after crops of the atlases and of the best frames, and the
+    frames (video index, time) of each session that show it."""
+    r = card.change
+    ident = int(r["id"]) if isinstance(r.get("id"), float) else r.get("id")
+    unit = "mm" if units == "mm" else "units"
+    facts = (f"diameter {fmt(r.get('diameter_mm'), 1, ' ' + unit)}, colour change ΔE "
+             f"{fmt(r.get('delta_e'), 1)}, score {fmt(r.get('score'), 2)}")
+    best = {k: (rows[0] if rows else None) for k, rows in card.frames.items()}
+    captions = {
+        "atlas_a": f"Before: {esc(a)}'s atlas at the site",
+        "atlas_b": f"After: {esc(b)}'s atlas",
+        "frame_a": f"{esc(a)}, " + (esc(_frame_text(best["a"])) if best.get("a") else "best frame"),
+        "frame_b": f"{esc(b)}, " + (esc(_frame_text(best["b"])) if best.get("b") else "best frame"),
+    }
+    figs = "".join(figure(card.crops[k], f"change {ident}: {k.replace('_', ' ')}", captions[k])
+                   for k in ("atlas_a", "atlas_b", "frame_a", "frame_b") if k in card.crops)
+    lines = []
+    for key, name, what in (("b", b, "see it best"), ("a", a, "saw the same site")):
+        rows = card.frames.get(key, [])
+        listed = ", ".join(esc(_frame_text(x)) for x in rows) if rows else "none"
+        lines.append(f"<li>Frames of {esc(name)} that {what}: {listed}</li>")
+    return (f"<article class='card' id='{esc(slug('change', a, b, str(ident)))}'>"
+            f"<h4>Change {esc(ident)}</h4><p>{esc(facts)}</p><div class='crops'>{figs}</div>"
+            f"<ul class='frames'>{''.join(lines)}</ul></article>")
+
+
 def comparison_section(c: ComparisonPage) -> str:
     m = c.summary
     facts = [("co-registration", "registered" if m.registered
@@ -311,6 +356,16 @@ def comparison_section(c: ComparisonPage) -> str:
         parts.append(f"<div class='pair'>{''.join(maps)}</div>")
     if m.registered:
         parts += ["<h3>Changes</h3>", changes_table(c)]
+    if c.cards:
+        more = len(m.changes) - len(c.cards)
+        parts += ["<h3>Each change found back in the videos</h3>",
+                  f"<p>Per change: the site in {esc(m.a)}'s atlas (before) and {esc(m.b)}'s (after), "
+                  f"and the frame of each session that shows it best (the region outlined in magenta); "
+                  "frames are numbered by their index in the video (findback.csv lists them).</p>",
+                  "<div class='cards'>" + "".join(change_card(k, m.a, m.b, c.units) for k in c.cards)
+                  + "</div>"]
+        if more > 0:
+            parts.append(f"<p>{more} more changes with lower scores are in findback.csv.</p>")
     parts.append("</section>")
     return "\n".join(parts)
 
@@ -431,6 +486,14 @@ figure img { cursor: zoom-in; }
 .bad { color: #b3261e; font-weight: 600; }
 .warn { background: #fff4e5; border-left: 4px solid #e08a00; padding: 8px 12px; }
 .none { color: #555; }
+.cards { display: grid; grid-template-columns: 1fr; gap: 14px; }
+.card { border: 1px solid #e2e2e2; border-radius: 6px; padding: 4px 14px 8px; }
+.card h4 { margin: 8px 0 2px; font-size: 16px; }
+.card p { margin: 2px 0; }
+.crops { display: grid; grid-template-columns: repeat(4, 1fr); gap: 10px; }
+.crops figure { margin: 6px 0; }
+ul.frames { margin: 4px 0; padding-left: 20px; font-size: 14px; }
+@media (max-width: 900px) { .crops { grid-template-columns: 1fr 1fr; } }
 .scroll { overflow-x: auto; }
 svg.timeline text { font: 13px system-ui, sans-serif; fill: #333; paint-order: stroke; stroke: #fff;
   stroke-width: 4px; stroke-linejoin: round; }

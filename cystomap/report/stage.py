@@ -3,7 +3,9 @@
 Per session: the quality figures (frames used and registered, reprojection error, coverage,
 source of the scale), the atlas, the coverage map and an interactive 3-D view of the textured
 model. Per comparison of consecutive sessions: co-registration, the difference map, the changes
-outlined on the atlas and highlighted on the 3-D model, and the changes table; when the sessions
+outlined on the atlas and highlighted on the 3-D model, the changes table and a card per change
+(before / after crops of both atlases and of the best frame of each session, and the frames
+that show it, from compare's find-back); when the sessions
 could not be co-registered, the reason and both atlases side by side. A timeline when the
 subject has more than two sessions, and the phantom's scores when an evaluation is given.
 
@@ -160,7 +162,34 @@ def _comparison_page(k: int, c: ComparisonInputs, summaries: dict[str, SessionSu
             page.hrefs[name] = _href(p, base)
     if summary.registered and b.inputs is not None:
         page.view = _changes_view(k, summary, b, views, geometries)
+    page.cards = _change_cards(summary, cfg)
     return page
+
+
+CROPS = ("atlas_a", "atlas_b", "frame_a", "frame_b")
+
+
+def _change_cards(c: ComparisonSummary, cfg: ReportConfig) -> list[html.ChangeCard]:
+    """A card per change (highest scores first, at most max_change_cards) that compare
+    found back (findback.csv and the crops in findback/)."""
+    if not c.findback or not c.registered:
+        return []
+    cards = []
+    for r in c.changes[: cfg.max_change_cards]:
+        ident = r.get("id")
+        rows = [x for x in c.findback if x.get("id") == ident]
+        card = html.ChangeCard(r)
+        for key in ("a", "b"):
+            mine = [x for x in rows if x.get("session") == key]
+            card.frames[key] = sorted(mine, key=lambda x: x.get("rank") or 0)
+        name = int(ident) if isinstance(ident, float) else ident
+        for crop in CROPS:
+            p = c.file(f"findback/change{name}_{crop}.png")
+            if p is not None:
+                card.crops[crop] = media.embed_file(p, cfg.image_width, cfg.jpeg_quality)
+        if card.crops or rows:
+            cards.append(card)
+    return cards
 
 
 def _changes_view(k: int, c: ComparisonSummary, b: SessionSummary, views: dict[str, Any],

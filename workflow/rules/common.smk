@@ -136,7 +136,8 @@ def comparison_inputs(wildcards):
     for key, session in (("a", wildcards.a), ("b", wildcards.b)):
         root = f"results/{wildcards.subject}/{session}"
         inputs |= {f"{key}_sfm": f"{root}/sfm", f"{key}_preprocessed": f"{root}/preprocessed",
-                   f"{key}_mesh": f"{root}/mesh/surface.ply", f"{key}_atlas": f"{root}/atlas"}
+                   f"{key}_mesh": f"{root}/mesh/surface.ply", f"{key}_atlas": f"{root}/atlas",
+                   f"{key}_frames": f"{root}/frames"}
     return inputs
 
 

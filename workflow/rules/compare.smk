@@ -7,7 +7,10 @@ rule compare:
     output:
         compare=report(
             directory("results/{subject}/compare/{a}_vs_{b}"),
-            patterns=[r"{file,(difference|changes|side_by_side|landmarks)\.png|(changes|landmarks)\.csv}"],
+            patterns=[
+                r"{file,(difference|changes|side_by_side|landmarks)\.png|(changes|landmarks|findback)\.csv"
+                r"|findback/change\d+_(atlas|frame)_[ab]\.png}"
+            ],
             caption="../report/compare.rst",
             category="Changes",
             subcategory="{subject}",
