@@ -24,6 +24,9 @@ from cystomap.compare import CompareConfig, Landmark, SessionPaths, compare_sess
 from cystomap.compare.registration import Similarity
 from cystomap.errors import InputError
 from cystomap.evaluate import evaluate_changes, evaluate_session
+from cystomap.evaluate.config import EvalConfig
+from cystomap.evaluate.session import _align, _load_models
+from cystomap.evaluate.truth import load_truth
 from cystomap.phantom import PhantomConfig
 
 # a frame that is not the world's: neck along -x+z, anterior along +y+z (orthogonal)
@@ -151,10 +154,6 @@ def test_phantom_sessions_find_their_neck_and_roll(pair: dict[str, Path]) -> Non
         if name == "s2":  # the lesions' regions in the estimated frame are the truth's
             assert an["regions_n"] == 6 and an["regions_correct"] == 6, an["lesions"]
         meta = json.loads((root / "atlas" / "atlas.json").read_text())
-        from cystomap.evaluate.session import _align, _load_models
-        from cystomap.evaluate.config import EvalConfig
-        from cystomap.evaluate.truth import load_truth
-
         _, sim3 = _align(load_truth(root / "truth"), _load_models(root / "sfm", EvalConfig(), []),
                          EvalConfig(), [])
         world[name] = _world(meta, sim3)

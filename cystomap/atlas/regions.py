@@ -14,8 +14,9 @@ ORIENTATION_NOTE = (
     "seen from inside as when facing the patient: posterior wall in the centre column, the "
     "patient's right wall to its left, the left wall to its right, anterior wall at both "
     "edges; column = clock position seen from the neck (12 = anterior, 3 = patient's left)")
-LEGEND = ("DOME top / NECK bottom | seen from inside, facing the patient: "
-          "patient's RIGHT on the left, LEFT on the right | clock from the neck, 12 = anterior")
+LEGEND = ("DOME top, NECK bottom; seen from inside, facing the patient: patient's RIGHT "
+          "on the left, LEFT on the right", "columns: clock position seen from the neck, "
+          "12 = anterior (at the edges), 6 = posterior (centre)")
 GRID = (255, 255, 255)
 TEXT = (255, 255, 0)
 
@@ -46,7 +47,9 @@ def region_overlay(rgba: np.ndarray, proj: Projection, anatomy: Anatomy,
         fs = size * scale
         (tw, th), _ = cv2.getTextSize(text, font, fs, thick)
         org = (round(x - tw / 2), round(y + th / 2))
-        cv2.putText(img, text, org, font, fs, (0, 0, 0), thick + 2, cv2.LINE_AA)
+        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):  # a dark outline, same advance
+            cv2.putText(img, text, (org[0] + dx, org[1] + dy), font, fs, (0, 0, 0), thick,
+                        cv2.LINE_AA)
         cv2.putText(img, text, org, font, fs, colour, thick, cv2.LINE_AA)
 
     if anatomical:
@@ -65,7 +68,7 @@ def region_overlay(rgba: np.ndarray, proj: Projection, anatomy: Anatomy,
             xs = [float(x)] if name != "anterior wall" else [w * 0.06, w * 0.94]
             for xx in xs:
                 put(name.upper(), xx, (y_neck + y_dome) / 2)
-        put("DOME", w / 2, y_dome / 2)
+        put("DOME", w / 2, max(y_dome / 2, 90 * scale))
         put("TRIGONE / NECK", w / 2, (y_neck + h) / 2)
         for hour in range(1, 13):
             x, _ = proj.angles_to_pixel(_az(hour), 0.0)
@@ -79,5 +82,6 @@ def region_overlay(rgba: np.ndarray, proj: Projection, anatomy: Anatomy,
         codes = np.unique(names, return_inverse=True)[1].reshape(h, w).astype(np.uint8)
         edge = (cv2.morphologyEx(codes, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0)
         img[edge] = GRID
-    put(LEGEND, w / 2, 18 * scale, 0.55, GRID)
+    for i, line in enumerate(LEGEND):
+        put(line, w / 2, (22 + 30 * i) * scale, 0.8, GRID)
     return img
