@@ -17,7 +17,10 @@ from cystomap.errors import InputError
 
 log = logging.getLogger(__name__)
 
-COLUMNS = ["subject", "session", "video", "date", "camera", "extent_mm", "volume_ml"]
+COLUMNS = ["subject", "session", "video", "date", "camera", "extent_mm", "volume_ml",
+           "entry_roll_deg", "neck_xyz", "anterior_xyz"]
+#: Optional columns that override a session's anatomical frame (cystomap.anatomy.AnatomyHint).
+ANATOMY_COLUMNS = ("entry_roll_deg", "neck_xyz", "anterior_xyz")
 #: Keys of the config's ``phantom:`` section that are not PhantomConfig fields.
 PHANTOM_STUDY_KEYS = ("enabled", "subject", "camera")
 PHANTOM_SESSIONS = {"s1": ("2026-01-05", 1), "s2": ("2026-04-20", 2)}
@@ -97,12 +100,23 @@ def phantom_settings(section: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _typed(column: str, value: str) -> Any:
-    if column in ("extent_mm", "volume_ml"):
+    if column in ("extent_mm", "volume_ml", "entry_roll_deg"):
         try:
             return float(value)
         except ValueError:
             return value  # the schema reports it
     return value
+
+
+def anatomy_overrides(row: Mapping[str, Any]) -> dict[str, Any]:
+    """A session row's anatomical-frame overrides (None where the sheet leaves them empty)."""
+    out: dict[str, Any] = {}
+    for k in ANATOMY_COLUMNS:
+        v = row.get(k)
+        out[k] = None if v is None or (isinstance(v, float) and v != v) or v == "" else v
+    if out["entry_roll_deg"] is not None:
+        out["entry_roll_deg"] = float(out["entry_roll_deg"])
+    return out
 
 
 def _check_date(value: str, path: Path, line: int) -> None:

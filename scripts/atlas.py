@@ -14,4 +14,5 @@ with log_to(sm.log[0]):
         Path(sm.input.mesh),
         Path(sm.output.atlas),
         from_mapping(AtlasConfig, sm.params.atlas, "atlas"),
+        anatomy=sm.params.anatomy,
     )

@@ -60,3 +60,20 @@ def test_comma_separated_sheet_is_explained(tmp_path, schema):
     path.write_text("subject,session,video,date,camera\np,a,v.mp4,2026-01-01,scope\n")
     with pytest.raises(InputError, match="tab-separated"):
         load_sheet(path, CAMERAS, schema)
+
+
+def test_anatomy_override_columns(tmp_path, schema):
+    from cystomap.anatomy import AnatomyHint
+    from cystomap.sessions import anatomy_overrides
+
+    header = HEADER.rstrip("\n") + "\tentry_roll_deg\tneck_xyz\tanterior_xyz\n"
+    path = write(tmp_path, "p01\tpre\tv1.mp4\t2026-01-02\tscope\t\t90\t1.5 -2 30\t\n"
+                 "p01\tpost\tv2.mp4\t2026-03-02\tscope\t\t\t\t\n", header)
+    df = load_sheet(path, CAMERAS, schema)
+    first, second = (anatomy_overrides(r) for r in df.to_dict("records"))
+    assert first == {"entry_roll_deg": 90.0, "neck_xyz": "1.5 -2 30", "anterior_xyz": None}
+    assert AnatomyHint.from_mapping(first).neck_point == (1.5, -2.0, 30.0)
+    assert second == {"entry_roll_deg": None, "neck_xyz": None, "anterior_xyz": None}
+    bad = write(tmp_path, "p01\tpre\tv1.mp4\t2026-01-02\tscope\t\t\t1 2\t\n", header)
+    with pytest.raises(InputError, match="column neck_xyz"):
+        load_sheet(bad, CAMERAS, schema)

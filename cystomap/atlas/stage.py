@@ -11,9 +11,13 @@ Outputs in ``out_dir`` (written atomically):
 * ``atlas.png``: the wall about the mesh barycentre (equirectangular by default, see
   :mod:`cystomap.atlas.projection`), RGBA: alpha 255 where seen by at least one frame, else 0
   (colour 0);
+* ``regions.png``: the atlas with the standard regions' grid, their names, clock positions and
+  the orientation legend;
 * ``coverage.png``: number of frames seeing each pixel (black = unseen, then viridis up to
   ``coverage_max_views``);
 * ``atlas.json``: the projection contract (size, barycentre, axes, pixel ↔ point formulas),
+  ``anatomy`` (the session's anatomical frame, :mod:`cystomap.anatomy`; the atlas axes are
+  drawn from it), ``regions`` (area and seen share of each standard region),
   ``coverage_percent`` (share of the wall *area* seen, each pixel weighted by the area of its
   wall patch), views statistics, photometry, settings and timing;
 * ``model.obj`` + ``model.mtl`` + ``texture.png`` and ``model.glb`` (glTF 2.0): the mesh with
@@ -34,8 +38,10 @@ from typing import Any
 
 import numpy as np
 
+from cystomap.anatomy import REGIONS, Anatomy, AnatomyHint, atlas_axes, estimate
 from cystomap.atlas.model import uv_unwrap, write_glb, write_obj
 from cystomap.atlas.projection import PROJECTIONS, Projection, SurfaceRays
+from cystomap.atlas.regions import ORIENTATION_NOTE, region_overlay
 from cystomap.atlas.texture import (
     Photometry,
     TextureSettings,
@@ -122,6 +128,13 @@ class AtlasConfig:
     # Decoded frames are kept in memory between the two passes when they fit in this many MB
     # (else they are read twice).
     frame_cache_mb: int = 1024
+    # Atlas frame: "anatomical" = about the session's anatomical frame (cystomap.anatomy: neck
+    # at the bottom, dome at the top, patient's right on the left), "model" = the SfM frame's
+    # own axes.
+    orientation: str = "anatomical"
+    # The image's up direction while the scope enters, clockwise from anterior seen from the
+    # neck (degrees; 0 = entered upright); the sessions sheet's entry_roll_deg overrides it.
+    entry_roll_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.projection not in PROJECTIONS:
@@ -151,6 +164,8 @@ class AtlasConfig:
             "coverage_max_views >= 1": self.coverage_max_views >= 1,
             "1 <= threads <= 64": 1 <= self.threads <= 64,
             "frame_cache_mb >= 0": self.frame_cache_mb >= 0,
+            "orientation in (anatomical, model)": self.orientation in ("anatomical", "model"),
+            "-360 <= entry_roll_deg <= 360": -360 <= self.entry_roll_deg <= 360,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -236,11 +251,30 @@ def load_views(
 # --------------------------------------------------------------------------- stage
 
 
+def session_anatomy(sfm_dir: Path, bary: np.ndarray, rays: SurfaceRays,
+                    hint: AnatomyHint) -> Anatomy:
+    """The session's anatomical frame from its registered frames (in name = video order)."""
+    rec = load_reconstruction(sfm_dir)
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    rots, cens = [], []
+    for im in images:
+        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        r = np.asarray(cfw.rotation.matrix(), dtype=np.float64)
+        rots.append(r.T)
+        cens.append(-r.T @ np.asarray(cfw.translation, dtype=np.float64).reshape(3))
+    return estimate([im.name for im in images], np.array(rots).reshape(-1, 3, 3),
+                    np.array(cens).reshape(-1, 3), bary, rays, hint)
+
+
 def build_atlas(
     sfm_dir: Path, preprocessed_dir: Path, mesh_ply: Path, out_dir: Path,
-    cfg: AtlasConfig | None = None,
+    cfg: AtlasConfig | None = None, anatomy: AnatomyHint | dict[str, Any] | None = None,
 ) -> Path:
-    """Paint the atlas, measure coverage and write the textured model into ``out_dir``."""
+    """Paint the atlas, measure coverage and write the textured model into ``out_dir``.
+
+    ``anatomy``: the session's overrides of its anatomical frame (sessions sheet columns
+    entry_roll_deg, neck_xyz, anterior_xyz; cfg.entry_roll_deg when it has none).
+    """
     import cv2
 
     cfg = cfg or AtlasConfig()
@@ -249,8 +283,15 @@ def build_atlas(
     t0 = time.perf_counter()
     verts, faces = read_mesh(mesh_ply)
     bary = volume_centroid(verts, faces)
-    proj = Projection(cfg.projection, cfg.width, cfg.height, bary)
     rays = SurfaceRays(verts, faces, origin=bary)
+    if not isinstance(anatomy, AnatomyHint):
+        m = dict(anatomy or {})
+        if m.get("entry_roll_deg") is None or m.get("entry_roll_deg") != m.get("entry_roll_deg"):
+            m["entry_roll_deg"] = cfg.entry_roll_deg
+        anatomy = AnatomyHint.from_mapping(m)
+    frame = session_anatomy(sfm_dir, bary, rays, anatomy)
+    axes = atlas_axes(frame) if cfg.orientation == "anatomical" else np.eye(3)
+    proj = Projection(cfg.projection, cfg.width, cfg.height, bary, axes)
     views, mask = load_views(sfm_dir, preprocessed_dir, cfg.max_views)
     log.info("%d registered frames, mesh %d faces, atlas %s %dx%d", len(views), len(faces),
              cfg.projection, cfg.width, cfg.height)
@@ -274,8 +315,19 @@ def build_atlas(
     atlas[seen, 3] = 255
     atlas = atlas.reshape(h, w, 4)
     views_seen = result.n_views[seen].astype(np.float64)
+    region_names = frame.regions(proj.grid_directions().reshape(-1, 3) + bary)
+    regions = {}
+    for name in REGIONS:
+        sel = region_names == name
+        a = float(area[sel].sum())
+        regions[name] = {"area_mm2": a, "seen_area_mm2": float(area[sel & seen].sum()),
+                         "seen_percent": 100.0 * float(area[sel & seen].sum()) / max(a, 1e-12)}
     meta: dict[str, Any] = {
         **proj.to_json(),
+        "orientation": (ORIENTATION_NOTE if cfg.orientation == "anatomical"
+                        else "the SfM model frame's own axes (atlas.orientation: model)"),
+        "anatomy": frame.to_json(),
+        "regions": regions,
         "mesh": str(mesh_ply),
         "coverage_percent": coverage,
         "coverage": {
@@ -305,6 +357,8 @@ def build_atlas(
     }
     with atomic_dir(out_dir) as tmp:
         imwrite_rgb(tmp / "atlas.png", atlas)
+        imwrite_rgb(tmp / "regions.png", region_overlay(atlas, proj, frame,
+                                                        cfg.orientation == "anatomical"))
         imwrite_rgb(tmp / "coverage.png", coverage_image(result.n_views.reshape(h, w),
                                                       cfg.coverage_max_views))
         if cfg.model:

@@ -18,7 +18,10 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points),
   ``elongation`` (length / width), ``observed_share`` (share of the area both sessions
   saw; below 1 when a strip of unseen wall through the region was bridged) and ``delta_e``
-  (CIE76 ΔE*ab between A's and B's mean colours over the region); sorted by score;
+  (CIE76 ΔE*ab between A's and B's mean colours over the region); then where it is in B's
+  anatomical frame (:mod:`cystomap.anatomy`, from B's atlas.json): ``region`` (standard
+  bladder region), ``clock`` (o'clock seen from the neck, 12 = anterior) and
+  ``distance_from_neck_mm`` (on the wall); sorted by score;
 * ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
   ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
   change, black = not compared (not seen by both, or far from every inlier match);
@@ -54,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
 from cystomap.compare.changes import CHANGE_COLUMNS, Region, detect, threshold_of
 from cystomap.compare.config import CompareConfig
 from cystomap.compare.difference import (
@@ -185,7 +189,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
 
     with atomic_dir(out_dir) as tmp:
         write_json(tmp / "registration.json", reg_json)
-        _write_csv(tmp / "changes.csv", CHANGE_COLUMNS, [g.row() for g in regions])
+        _write_csv(tmp / "changes.csv", CHANGE_COLUMNS + ANATOMY_COLUMNS,
+                   with_anatomy([g.row() for g in regions], atlas_b))
         found.write(tmp)
         imwrite_rgb(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
         if diff is not None:
@@ -197,7 +202,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             if cfg.model:
                 _write_model(tmp / "changes.glb", atlas_b, masks, cfg)
         if landmarks:
-            _write_csv(tmp / "landmarks.csv", LANDMARK_COLUMNS, lm_rows)
+            _write_csv(tmp / "landmarks.csv", LANDMARK_COLUMNS + ANATOMY_COLUMNS,
+                       with_anatomy(lm_rows, atlas_b))
             imwrite_rgb(tmp / "landmarks.png", draw_landmarks(atlas_b.rgba, lm_rows))
         times["total"] = round(time.perf_counter() - t0, 3)
         summary.update(
@@ -362,6 +368,25 @@ def _supported(grid: Any, pa: np.ndarray, reg: Registration,
     if cfg.point_support_mm > 0:
         ok &= point_dist <= cfg.point_support_mm
     return ok, point_dist
+
+
+def with_anatomy(rows: list[dict[str, Any]], atlas: SessionAtlas) -> list[dict[str, Any]]:
+    """``rows`` (with x, y, z in the session's model frame) with region, clock and
+    distance_from_neck_mm from the session's atlas.json anatomy (empty without one)."""
+    import json
+
+    meta = json.loads((Path(atlas.atlas_dir) / "atlas.json").read_text())
+    out = [{**r, **{k: "" for k in ANATOMY_COLUMNS}} for r in rows]
+    if "anatomy" not in meta:
+        return out
+    anatomy = Anatomy.from_json(meta["anatomy"])
+    idx = [i for i, r in enumerate(rows) if all(isinstance(r.get(k), int | float)
+                                                for k in ("x", "y", "z"))]
+    if idx:
+        pts = np.array([[rows[i]["x"], rows[i]["y"], rows[i]["z"]] for i in idx], float)
+        for i, loc in zip(idx, locate(anatomy, pts, atlas.rays), strict=True):
+            out[i].update(loc)
+    return out
 
 
 # --------------------------------------------------------------------------- images

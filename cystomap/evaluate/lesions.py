@@ -63,6 +63,9 @@ def score_changes(
                                  "detected": i in by_true}
         if i in by_true:
             j, d = by_true[i]
+            if "region" in det.columns and "region" in true.columns:
+                entry.update(region_true=str(row.region), region=str(det["region"].iloc[j]),
+                             region_correct=str(det["region"].iloc[j]) == str(row.region))
             entry.update(
                 detection_row=j,
                 localisation_error_mm=d,
@@ -84,6 +87,7 @@ def score_changes(
     loc = np.array([e["localisation_error_mm"] for e in lesions if e["detected"]])
     size = np.array([e["size_error_percent"] for e in lesions if e["detected"]])
     fp_rows = [j for j in range(len(det)) if j not in matched_det]
+    regions = [e["region_correct"] for e in lesions if "region_correct" in e]
     out: dict[str, Any] = {
         "n_true": len(true),
         "n_detected": len(det),
@@ -97,6 +101,7 @@ def score_changes(
         "size_error_percent_mean": float(size.mean()) if len(size) else None,
         "size_abs_error_percent_mean": float(np.abs(size).mean()) if len(size) else None,
         "average_precision": _average_precision(det, matched_det, len(true)),
+        "region_accuracy": sum(regions) / len(regions) if regions else None,
         "recall_by_diameter": by_diam,
         "lesions": lesions,
         "false_positive_rows": fp_rows,

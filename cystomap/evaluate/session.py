@@ -11,9 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from cystomap.evaluate.anatomy import score_anatomy
 from cystomap.evaluate.config import EvalConfig
 from cystomap.evaluate.lesions import score_changes
-from cystomap.evaluate.surface import score_atlas, score_surface
+from cystomap.evaluate.surface import read_atlas_json, score_atlas, score_surface
 from cystomap.evaluate.trajectory import (
     Model,
     Sim3,
@@ -41,6 +42,8 @@ SUMMARY_KEYS = (
     "atlas.detail_correlation", "atlas.sharpness_ratio",
     "alignment.rmse_mm", "lesions.recall", "lesions.false_positives",
     "lesions.localisation_error_mm_mean", "lesions.size_error_percent_mean",
+    "anatomy.neck_error_deg", "anatomy.roll_error_deg", "anatomy.regions_accuracy",
+    "lesions.region_accuracy",
 )
 
 
@@ -191,6 +194,10 @@ def evaluate_session(
         left_out.append(f"atlas: no atlas.json{f' in {atlas}' if atlas else ''}")
     else:
         result["atlas"] = score_atlas(truth, atlas, sim3, cfg)
+        if sim3 is not None:
+            anatomy = score_anatomy(truth, read_atlas_json(atlas), sim3)
+            if anatomy is not None:
+                result["anatomy"] = anatomy
     result["left_out"] = left_out
     for why in left_out:
         log.info("%s: left out: %s", truth_dir, why)

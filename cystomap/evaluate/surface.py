@@ -120,12 +120,14 @@ def score_atlas(
     atlas_b = np.asarray(meta["barycentre"], dtype=np.float64)
     if atlas_b.shape != (3,):
         raise InputError(f"{atlas_dir / 'atlas.json'}: barycentre must be [x, y, z]")
-    out.update(_score_atlas_image(truth, read_equirect(png), atlas_b, sim3, cfg))
+    axes = np.asarray(meta.get("axes", np.eye(3)), dtype=np.float64)
+    out.update(_score_atlas_image(truth, read_equirect(png), atlas_b, sim3, cfg, axes))
     return out
 
 
 def _score_atlas_image(
-    truth: Truth, atlas: np.ndarray, atlas_b: np.ndarray, sim3: Sim3, cfg: EvalConfig
+    truth: Truth, atlas: np.ndarray, atlas_b: np.ndarray, sim3: Sim3, cfg: EvalConfig,
+    axes: np.ndarray | None = None,
 ) -> dict[str, Any]:
     seen = truth.seen
     h, w = seen.shape
@@ -141,6 +143,8 @@ def _score_atlas_image(
     weight[hit] = t[hit] ** 2 * np.cos(el) / np.maximum(cos_inc, cfg.atlas_min_cos_incidence)
     wall = truth.barycentre + t[hit, None] * dirs[hit]
     in_model = sim3.inverse().apply(wall)
+    if axes is not None:  # atlas frame (atlas.json "axes": q = axes @ (p - barycentre))
+        in_model = (in_model - atlas_b) @ axes.T + atlas_b
     row, col = equirect_pixels(in_model - atlas_b, *atlas.shape[:2])
     px = atlas[row, col]
     # bilinear, for the image comparison

@@ -4,8 +4,8 @@ Imitates the paper phantom (170 x 130 x 110 mm anatomical bladder, 40 mm apertur
 urethra, printed mucosa texture; six lesions of 5-30 mm added before session 2).
 
 World frame (both sessions): millimetres, origin = session-1 barycentre (volume centroid,
-aperture capped), x = long axis, z up towards the dome, aperture and urethra tube at the
-bottom along -z. Session 2 is the same bladder, deformed in place when
+aperture capped), x = long axis (patient's right +x), y = anterior, z up towards the dome,
+aperture and urethra tube at the bottom along -z. Session 2 is the same bladder, deformed in place when
 ``cfg.deformation > 0``; the texture is attached to the material so it moves with the wall.
 
 Files written per session (``generate_session``):
@@ -24,10 +24,12 @@ Files written per session (``generate_session``):
 * ``seen.png``  same grid: 255 where the wall was in the image and unoccluded in >= 1 good
   frame, else 0.
 * ``lesions.csv``  ``id,x,y,z,nx,ny,nz,diameter_mm,azimuth_deg,elevation_deg,kind,site,
-  height_mm`` (session 2's frame; az/el about its barycentre; kind/site see
-  ``cystomap.phantom.lesions``; height_mm = relief of papillary lesions, their centre is on
-  top of it); header only for session 1.
-* ``truth.json``  seed, session, sizes, barycentre, extent_mm, area_mm2, volume_ml,
+  height_mm,region,clock,distance_from_neck_mm`` (session 2's frame; az/el about its
+  barycentre; kind/site see ``cystomap.phantom.lesions``; height_mm = relief of papillary
+  lesions, their centre is on top of it; region, clock and distance in its anatomical frame,
+  :mod:`cystomap.anatomy`); header only for session 1.
+* ``truth.json``  seed, session, sizes, barycentre, anatomy (origin, neck, anterior: the
+  patient's anterior is world +y, the scope enters upright), extent_mm, area_mm2, volume_ml,
   seen_fraction (area-weighted), aperture, deformation, gain, bad frames, per-frame
   distances / exposure / blur, rotation per frame, render seconds, the config; ``lens``
   (rendered vs given camera), ``photometry`` (per-session draws), ``texture`` (mode, family,

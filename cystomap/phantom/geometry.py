@@ -5,7 +5,9 @@ World frame of session 1 (and of session 2, which is session 1 deformed in place
 * origin = barycentre (volume centroid) of session 1's bladder, the aperture capped flat;
 * x = longest axis (``size_mm[0]``), y = ``size_mm[1]``, z = ``size_mm[2]``, z up;
 * the aperture (bladder neck) is at the bottom, its axis along -z; the urethra tube is a
-  straight cylinder of the aperture's diameter running from the neck downwards (-z).
+  straight cylinder of the aperture's diameter running from the neck downwards (-z);
+* anatomy: the patient's anterior is +y (``ANTERIOR``), so the patient's left is -x and the
+  right +x (:attr:`Bladder.anatomy`); the scope enters upright (image up = anterior).
 
 The wall is star-shaped about the barycentre: ``r(u) = ellipsoid(u) * (1 + smooth noise(u))
 * (1 + neck funnel(u))``, with the semi-axes rescaled so the bounding box is ``size_mm``.
@@ -31,6 +33,9 @@ STREAM_SHAPE = 1
 STREAM_TEXTURE = 2
 STREAM_LESIONS = 3
 STREAM_DEFORM = 4
+
+#: The patient's anterior direction in the world frame (the dome is +z, the neck -z).
+ANTERIOR = np.array([0.0, 1.0, 0.0])
 
 
 def rng(cfg: PhantomConfig, *stream: int) -> np.random.Generator:
@@ -178,6 +183,15 @@ class Bladder:
     @property
     def aperture_centre(self) -> np.ndarray:
         return self.vertices[self.rim].mean(0)
+
+    @property
+    def anatomy(self) -> dict[str, list[float]]:
+        """The anatomical frame (see :mod:`cystomap.anatomy`): origin = barycentre, neck =
+        unit direction to the aperture centre, anterior = ``ANTERIOR`` made orthogonal to it."""
+        neck = unit(self.aperture_centre - self.barycentre)
+        ant = unit(ANTERIOR - (ANTERIOR @ neck) * neck)
+        return {"origin": [float(x) for x in self.barycentre], "neck": [float(x) for x in neck],
+                "anterior": [float(x) for x in ant]}
 
     def scene(self):  # -> o3d.t.geometry.RaycastingScene
         """A raycasting scene of wall + tube (geometry id 0; primitive ids = triangle rows)."""

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.outputs import atomic_dir, write_json
@@ -54,7 +55,7 @@ STREAM_BAD = 30
 STREAM_NOISE = 40
 POSE_COLUMNS = ("frame", "qw", "qx", "qy", "qz", "tx", "ty", "tz")
 LESION_COLUMNS = ("id", "x", "y", "z", "nx", "ny", "nz", "diameter_mm", "azimuth_deg",
-                  "elevation_deg", "kind", "site", "height_mm")
+                  "elevation_deg", "kind", "site", "height_mm", *ANATOMY_COLUMNS)
 SURFACE_NOTE = ("bladder wall only (urethra tube excluded; open at the aperture), triangle mesh"
                 " in mm in this session's world frame (the frame of poses.csv), binary PLY with"
                 " vertex normals and vertex colours = albedo")
@@ -356,7 +357,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         cv2.imwrite(str(tmp / "albedo.png"), cv2.cvtColor(albedo, cv2.COLOR_RGB2BGR))
         seen_img = (seen.reshape(atlas.h, atlas.w) * 255).astype(np.uint8)
         cv2.imwrite(str(tmp / "seen.png"), seen_img)
-        rows = lesion_rows(lesions, bladder) if session == 2 else []
+        rows = with_regions(lesion_rows(lesions, bladder), bladder) if session == 2 else []
         _write_lesions(tmp / "lesions.csv", rows)
         truth = _truth(cfg, session, camera, bladder, atlas, seen, traj, exposure, blur_len,
                        blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows, optical)
@@ -370,6 +371,26 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     log.info("phantom session %d written to %s in %.1f s (seen %.1f %%)", session, out_dir,
              time.perf_counter() - t_start, 100 * truth["seen_fraction"])
     return out_dir
+
+
+def true_anatomy(bladder: Bladder) -> Anatomy:
+    """The session's anatomical frame (world frame; see ``Bladder.anatomy``)."""
+    a = bladder.anatomy
+    return Anatomy(np.asarray(a["origin"]), np.asarray(a["neck"]), np.asarray(a["anterior"]),
+                   "phantom truth: neck = aperture centre, anterior = world +y")
+
+
+def with_regions(rows: list[dict], bladder: Bladder) -> list[dict]:
+    """Lesion rows with their region, clock and distance from the neck (on the true wall,
+    from the aperture centre)."""
+    if not rows:
+        return rows
+    from cystomap.atlas.projection import SurfaceRays
+
+    rays = SurfaceRays(bladder.wall_vertices, bladder.wall_triangles, bladder.barycentre)
+    pts = np.array([[r["x"], r["y"], r["z"]] for r in rows], float)
+    locs = locate(true_anatomy(bladder), pts, rays, neck_point=bladder.aperture_centre)
+    return [{**r, **loc} for r, loc in zip(rows, locs, strict=True)]
 
 
 def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, atlas: Atlas,
@@ -397,6 +418,8 @@ def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, a
             " in place); camera poses camera-to-world, OpenCV camera axes"),
         "barycentre": [float(x) for x in bladder.barycentre],
         "barycentre_definition": "volume centroid of the wall with the aperture capped flat",
+        "anatomy": {**true_anatomy(bladder).to_json(),
+                    "neck_point": [float(x) for x in bladder.aperture_centre]},
         "extent_mm": wall_extent(bladder.wall_vertices),
         "bbox_mm": wall_bbox(bladder.wall_vertices),
         "size_mm": list(cfg.size_mm),

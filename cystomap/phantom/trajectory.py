@@ -5,7 +5,9 @@ session barycentre, following smooth waypoints in azimuth/elevation) and the cam
 ``d`` mm before that point along a view direction tilted 10-18 deg from ``u`` (so the camera
 moves on a ~20 mm orbit around the barycentre and SfM has parallax):
 
-1. entry: from inside the urethra tube up through the aperture, looking at the start point;
+1. entry: from inside the urethra tube up through the aperture, looking at the start point,
+   upright as a urologist enters (image up = the patient's anterior, ``geometry.ANTERIOR``);
+   the roll then turns to that of the dome pass over its first stretch;
 2. a pass over the dome (up the meridian of the start azimuth, over the top, down the other
    side);
 3. a full sweep around the side wall at about +6 deg elevation;
@@ -32,6 +34,7 @@ STREAM_PATH = 10
 DEG_PER_MM = 0.7
 ENTRY_DEPTH_MM = 10.0  # camera start: this far inside the urethra below the aperture
 EXIT_HEIGHT_MM = 6.0  # camera end: this far above the aperture
+ENTRY_ROLL_RAMP = 0.06  # share of the scan over which the upright entry roll turns to the sweep's
 
 
 @dataclass
@@ -106,17 +109,31 @@ def _transport(view: np.ndarray, first: np.ndarray) -> np.ndarray:
 
 
 def _oriented_frames(view: np.ndarray, tangent: np.ndarray, labels: np.ndarray,
-                     jitter: np.ndarray) -> np.ndarray:
-    """Camera rotations: the image's short axis follows the sweep (``tangent``) during the
-    entry, the dome pass and the side sweep; elsewhere the roll is held (minimal rotation),
-    which saves a full extra turn of roll around the neck."""
+                     jitter: np.ndarray, ramp: int = 0) -> np.ndarray:
+    """Camera rotations: the image's short axis follows ``tangent`` (the sweep; during the
+    entry, -anterior, so image up is anterior) during the entry, the dome pass and the side
+    sweep; elsewhere the roll is held (minimal rotation), which saves a full extra turn of
+    roll around the neck. The roll turns from the entry's to the sweep's over the ``ramp``
+    samples after the entry (the shorter way round)."""
     from scipy.ndimage import gaussian_filter1d
 
     locked = _frames(view, tangent)
     pt = _transport(view, locked[0])
     x, y = pt[:, :, 0], pt[:, :, 1]
     yl = locked[:, :, 1]
-    psi = np.unwrap(np.arctan2(-np.einsum("ij,ij->i", yl, x), np.einsum("ij,ij->i", yl, y)))
+    psi = np.arctan2(-np.einsum("ij,ij->i", yl, x), np.einsum("ij,ij->i", yl, y))
+    entry = np.flatnonzero(labels == "entry")
+    if len(entry) and ramp > 0:
+        e = int(entry[-1]) + 1
+        psi[:e] = np.unwrap(psi[:e])
+        after = np.unwrap(psi[e:])
+        step = after[0] - psi[e - 1]
+        after -= step - (step + np.pi) % (2 * np.pi) + np.pi  # continue the shorter way
+        s = np.clip(np.arange(len(after)) / ramp, 0, 1)
+        w = s * s * (3 - 2 * s)
+        psi[e:] = (1 - w) * psi[e - 1] + w * after
+    else:
+        psi = np.unwrap(psi)
     lock = np.isin(labels, ["entry", "dome", "side"]).astype(float)
     last = int(np.flatnonzero(lock)[-1])
     hold = psi.copy()
@@ -185,14 +202,17 @@ def make_trajectory(cfg: PhantomConfig, session: int, bladder: Bladder, scene) -
     all_c = np.concatenate([cen_in[:-1], centre, cen_out[1:]])
     all_t = np.concatenate([np.repeat(target[:1], k_in - 1, 0), target,
                             np.repeat(target[-1:], k_in - 1, 0)])
-    all_tan = np.concatenate([np.repeat(tan[:1], k_in - 1, 0), tan, np.repeat(tan[-1:], k_in - 1, 0)])
+    # entry: the image's down axis is -anterior (image up = anterior, off the view direction)
+    ant = np.asarray(bladder.anatomy["anterior"])
+    all_tan = np.concatenate([np.repeat(-ant[None], k_in - 1, 0), tan,
+                              np.repeat(tan[-1:], k_in - 1, 0)])
     all_roll = np.concatenate([np.full(k_in - 1, roll[0]), roll, np.full(k_in - 1, roll[-1])])
     # phase labels per dense sample
     lab = lab_q
     all_lab = np.concatenate([np.full(k_in - 1, "entry", dtype=object), lab,
                               np.full(k_in - 1, "exit", dtype=object)])
     view = unit(all_t - all_c)
-    rot = _oriented_frames(view, all_tan, all_lab, all_roll)
+    rot = _oriented_frames(view, all_tan, all_lab, all_roll, round(ENTRY_ROLL_RAMP * m))
     # even spacing in rotation + translation
     rel_r = np.einsum("nji,njk->nik", rot[:-1], rot[1:])
     dang = np.degrees(np.arccos(np.clip((np.trace(rel_r, axis1=1, axis2=2) - 1) / 2, -1, 1)))

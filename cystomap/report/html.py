@@ -219,7 +219,9 @@ def session_section(s: SessionPage) -> str:
                           "Textured model: drag to rotate, scroll to zoom. Seen from outside, so the inner wall "
                           f"appears mirrored; grey = not seen. Axes in {esc(m.units)}.")
     atlas = figure(s.atlas, f"atlas of session {m.name}",
-                   "Atlas: the whole wall unrolled about its centre (column = azimuth, row = elevation); "
+                   "Atlas: the whole wall unrolled about its centre, neck at the bottom, dome at the top, "
+                   "seen from inside as when facing the patient (patient's right on the left; "
+                   "column = clock position seen from the neck, 12 = anterior at the edges); "
                    "black = not seen.", s.atlas_href)
     coverage = figure(s.coverage, f"coverage map of session {m.name}",
                       "Coverage: how many frames see each point of the wall. " + coverage_legend(s.coverage_max_views),
@@ -244,8 +246,9 @@ CHANGE_TABLE = (
     ("id", "id", 0, ""),
     ("diameter_mm", "diameter", 1, "{u}"),
     ("area_mm2", "area", 1, "{u}²"),
-    ("azimuth_deg", "azimuth", 0, "°"),
-    ("elevation_deg", "elevation", 0, "°"),
+    ("region", "region", 0, ""),
+    ("clock", "clock (from the neck)", 1, ""),
+    ("distance_from_neck_mm", "from the neck", 0, "{u}"),
     ("delta_e", "colour change (ΔE)", 1, ""),
     ("observed_share", "seen by both", 2, ""),
     ("score", "score (× threshold)", 2, ""),

@@ -17,6 +17,7 @@ rule atlas:
         ),
     params:
         atlas=config["atlas"],
+        anatomy=session_anatomy,
     log:
         "logs/{subject}/{session}/atlas.log",
     benchmark:

@@ -11,7 +11,7 @@ REPO = Path(workflow.basedir).resolve()
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from cystomap.sessions import phantom_sessions, read_sessions  # noqa: E402
+from cystomap.sessions import anatomy_overrides, phantom_sessions, read_sessions  # noqa: E402
 
 
 validate(config, str(REPO / "workflow/schemas/config.schema.yaml"))
@@ -70,6 +70,12 @@ def session_scale(wildcards):
     """Known size of the session's bladder for metric scale (None when the sheet has none)."""
     row = session_row(wildcards)
     return {k: (None if pd.isna(row[k]) else float(row[k])) for k in ("extent_mm", "volume_ml")}
+
+
+def session_anatomy(wildcards):
+    """The sheet's overrides of the session's anatomical frame (entry_roll_deg, neck_xyz,
+    anterior_xyz; None where empty)."""
+    return anatomy_overrides(session_row(wildcards).to_dict())
 
 
 def phantom_camera():
