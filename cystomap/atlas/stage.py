@@ -53,6 +53,7 @@ from cystomap.atlas.texture import (
     sharpness,
     view_weights,
 )
+from cystomap.camera import opencv_calibration
 from cystomap.errors import InputError, StageError
 from cystomap.images import imwrite_rgb
 from cystomap.mesh import load_reconstruction, read_mesh, volume_centroid
@@ -210,14 +211,8 @@ def load_views(
         if model not in ("PINHOLE", "SIMPLE_PINHOLE"):
             log.warning("%s: camera model %s; its distortion is ignored (frames should be "
                         "undistorted)", im.name, model)
-        k = np.asarray(cam.calibration_matrix(), dtype=np.float64).copy()
         h, w = mask.shape
-        if (w, h) != (cam.width, cam.height):
-            sx, sy = w / cam.width, h / cam.height
-            k[0, 0] *= sx
-            k[1, 1] *= sy
-            k[0, 2] = (k[0, 2] + 0.5) * sx - 0.5
-            k[1, 2] = (k[1, 2] + 0.5) * sy - 0.5
+        k = opencv_calibration(cam, w, h)
         cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         views.append(View(im.name, np.asarray(cfw.rotation.matrix(), dtype=np.float64),
                           np.asarray(cfw.translation, dtype=np.float64).reshape(3), k, w, h, path))
