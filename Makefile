@@ -10,7 +10,7 @@ APT_PKGS :=
 
 .PHONY: setup run test test-fast lint browser bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@# open3d needs libusb-1.0-0; Debian's python3 needs python3-venv for `-m venv`.
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || APT_NEED="libusb-1.0-0"; \
 	 $(PYTHON) -c 'import ensurepip' 2>/dev/null || APT_NEED="$$APT_NEED python3-venv"; \
@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	 fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q -e '.[dev]' -c constraints.txt
 	@touch $@
 
 setup: $(STAMP)

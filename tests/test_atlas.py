@@ -226,6 +226,7 @@ def test_image_pixels_land_on_their_atlas_pixels(tmp_path: Path) -> None:
                       inpaint_below=0, detail_power=1, model=False, threads=1)
     out = build_atlas(sfm, pre, mesh, tmp_path / "atlas", cfg)
     meta = json.loads((out / "atlas.json").read_text())
+    assert {"cystomap", "numpy", "opencv-python-headless", "pycolmap"} <= set(meta["software"])
     atlas = cv2.imread(str(out / "atlas.png"), cv2.IMREAD_UNCHANGED)  # BGRA
     proj = Projection(cfg.projection, cfg.width, cfg.height, np.asarray(meta["barycentre"]),
                       np.asarray(meta["axes"]))

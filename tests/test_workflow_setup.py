@@ -54,3 +54,27 @@ def test_with_threads_sets_the_key() -> None:
     section = {"threads": 2, "other": 1}
     assert with_threads(section, "threads", 1) == {"threads": 1, "other": 1}
     assert section["threads"] == 2  # the config itself is left alone
+
+
+def test_constraints_pin_every_direct_dependency_at_the_installed_version() -> None:
+    import tomllib
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+
+    from cystomap.outputs import software_versions
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    direct = [Requirement(r).name.lower() for r in
+              project["dependencies"] + project["optional-dependencies"]["dev"]]
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            name, _, pinned = line.partition("==")
+            pins[name.strip().lower()] = pinned.strip()
+    assert sorted(pins) == sorted(direct)
+    for name, pinned in pins.items():
+        assert version(name) == pinned, name
+    recorded = software_versions()
+    assert recorded["cystomap"] and all(recorded[k] == pins[k] for k in recorded if k in pins)

@@ -57,7 +57,7 @@ from cystomap.camera import opencv_calibration
 from cystomap.errors import InputError, StageError
 from cystomap.images import imwrite_rgb
 from cystomap.mesh import load_reconstruction, read_mesh, volume_centroid
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
@@ -320,6 +320,7 @@ def build_atlas(
                                    "(glTF; OBJ vt = 1 - v)"}
         meta["seconds"] = {"paint": round(t_paint, 2),
                            "total": round(time.perf_counter() - t0, 2)}
+        meta["software"] = software_versions()
         write_json(tmp / "atlas.json", meta)
     log.info("%s: coverage %.1f%% of the wall, %d frames contributed (%.1f s)", out_dir,
              coverage, result.contributing, time.perf_counter() - t0)
