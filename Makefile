@@ -8,9 +8,9 @@ CORES ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PKGS :=
 
-.PHONY: setup run test lint browser bench clean
+.PHONY: setup run test test-fast lint browser bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@# open3d needs libusb-1.0-0; Debian's python3 needs python3-venv for `-m venv`.
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || APT_NEED="libusb-1.0-0"; \
 	 $(PYTHON) -c 'import ensurepip' 2>/dev/null || APT_NEED="$$APT_NEED python3-venv"; \
@@ -20,18 +20,23 @@ $(STAMP): pyproject.toml
 	 fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q -e '.[dev]' -c constraints.txt
 	@touch $@
 
 setup: $(STAMP)
 
 ## run the whole workflow on the default study (the built-in phantom)
 run: setup
-	$(BIN)/snakemake --cores $(CORES) --workflow-profile workflow/profiles/default
+	$(BIN)/snakemake --cores $(CORES)
 
 ## lint + the test suite (what CI runs)
 test: setup lint browser
 	$(BIN)/pytest -q
+
+## the unit tier: no phantom render, no SfM, no Snakemake (tests marked slow are left out)
+test-fast: setup
+	$(BIN)/ruff check cystomap scripts tests
+	$(BIN)/pytest -q -m "not slow"
 
 lint: setup
 	$(BIN)/ruff check cystomap scripts tests

@@ -2,6 +2,12 @@
 
 Conventions used throughout cystomap: OpenCV camera axes (x right, y down, z forward),
 pixel centres at integer coordinates, distances in millimetres, poses camera-to-world.
+
+COLMAP (the sfm stage's model) puts the *corner* of the first pixel at 0, so its pixel centres
+and principal point are 0.5 px larger. The functions at the end of this module are the one place
+where the two conventions meet: :func:`colmap_params` writes a :class:`Camera` into COLMAP,
+:func:`opencv_calibration` reads a COLMAP camera back as an OpenCV ``K`` (for the image size at
+hand), :func:`colmap_to_opencv_xy` / :func:`opencv_to_colmap_xy` convert keypoints.
 """
 
 from __future__ import annotations
@@ -125,3 +131,46 @@ class Camera:
             raise InputError(f"{path}: cannot read camera JSON ({exc})") from exc
         cam = cls.from_config(d, name=str(d.get("name", path.stem)))
         return replace(cam, calibrated=bool(d.get("calibrated", True)))
+
+
+# --------------------------------------------------------------------------- COLMAP <-> OpenCV
+
+COLMAP_PIXEL_OFFSET = 0.5  # COLMAP coordinate of the centre of pixel 0 (OpenCV: 0)
+
+
+def colmap_params(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
+    """PINHOLE (fx, fy, cx, cy) or SIMPLE_PINHOLE (f, cx, cy) parameters of ``camera`` in
+    COLMAP's convention (principal point + 0.5)."""
+    cx, cy = camera.cx + COLMAP_PIXEL_OFFSET, camera.cy + COLMAP_PIXEL_OFFSET
+    if model == "SIMPLE_PINHOLE":
+        return 0.5 * (camera.fx + camera.fy), cx, cy
+    if model != "PINHOLE":
+        raise ValueError(f"camera model {model!r}: only PINHOLE and SIMPLE_PINHOLE are written")
+    return camera.fx, camera.fy, cx, cy
+
+
+def opencv_calibration(colmap_camera: Any, width: int | None = None,
+                       height: int | None = None) -> np.ndarray:
+    """OpenCV ``K`` (pixel centres at integers) of a pycolmap camera, for its images resized
+    to ``width`` x ``height`` (default: the camera's own size)."""
+    k = np.asarray(colmap_camera.calibration_matrix(), dtype=np.float64).copy()
+    sx = 1.0 if width is None else width / colmap_camera.width
+    sy = 1.0 if height is None else height / colmap_camera.height
+    # COLMAP coordinates scale with the image (corner at 0); then shift to pixel centres
+    k[0, 0] *= sx
+    k[1, 1] *= sy
+    k[0, 1] *= sx
+    k[0, 2] = k[0, 2] * sx - COLMAP_PIXEL_OFFSET
+    k[1, 2] = k[1, 2] * sy - COLMAP_PIXEL_OFFSET
+    return k
+
+
+def colmap_to_opencv_xy(xy: np.ndarray, sx: float = 1.0, sy: float = 1.0) -> np.ndarray:
+    """(N, 2) COLMAP image coordinates -> OpenCV pixels of the image resized by (sx, sy)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return np.column_stack([xy[:, 0] * sx, xy[:, 1] * sy]) - COLMAP_PIXEL_OFFSET
+
+
+def opencv_to_colmap_xy(xy: np.ndarray) -> np.ndarray:
+    """(N, 2) OpenCV pixels (centres at integers) -> COLMAP image coordinates."""
+    return np.asarray(xy, dtype=np.float64).reshape(-1, 2) + COLMAP_PIXEL_OFFSET

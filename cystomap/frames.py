@@ -70,7 +70,7 @@ import scipy.sparse.linalg as spla
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.video import (
     erode,
     fov_mask,
@@ -243,6 +243,7 @@ def extract_frames(
             "frames_decoded": n, "frames_kept": len(sel.kept),
             "reasons": {r: counts.get(r, 0) for r in REASONS},
             "fov_share": round(probe.fov_share, 4),
+            "software": software_versions(),
             "static_share": round(probe.static_share, 4),
             "analysis_size": [probe.aw, probe.ah],
             "thresholds": {

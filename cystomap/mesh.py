@@ -41,7 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from cystomap.errors import InputError, StageError
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ def build_mesh(sfm_dir: Path, out_dir: Path, cfg: MeshConfig | None = None) -> P
     }
     with atomic_dir(out_dir) as tmp:
         write_ply(tmp / "surface.ply", verts, faces, normals)
-        write_json(tmp / "mesh.json", info)
+        write_json(tmp / "mesh.json", {**info, "software": software_versions()})
     log.info("%s: %d vertices, %d faces, %.1f ml, mean point distance %.3f mm (%.1f s)",
              out_dir / "surface.ply", len(verts), len(faces), vol / 1000.0,
              info["point_distance"]["mean"], info["seconds"])

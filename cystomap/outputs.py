@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import shutil
@@ -78,3 +79,19 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+@functools.cache
+def software_versions() -> dict[str, str]:
+    """Installed versions of cystomap and of the libraries the stages' results depend on
+    (recorded in each stage's JSON; constraints.txt pins the tested ones)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {}
+    for dist in ("cystomap", "numpy", "scipy", "opencv-python-headless", "pycolmap", "open3d-cpu",
+                 "pymeshlab", "scikit-image"):
+        try:
+            found[dist] = version(dist)
+        except PackageNotFoundError:
+            continue
+    return found

@@ -41,7 +41,7 @@ import numpy as np
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.video import (
     circle_mask,
     erode,
@@ -179,7 +179,7 @@ def preprocess_frames(
             "settings": asdict(cfg),
             "elapsed_s": round(time.perf_counter() - t0, 3),
         }
-        write_json(tmp / "preprocess.json", summary)
+        write_json(tmp / "preprocess.json", {**summary, "software": software_versions()})
     log.info("preprocess: wrote %d frames to %s in %.1f s", len(paths), out_dir,
              time.perf_counter() - t0)
     return out_dir

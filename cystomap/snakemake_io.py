@@ -12,3 +12,12 @@ def camera_param(param: Mapping[str, Any]) -> Camera:
     """A rule's ``camera`` param (the config entry plus its ``name``) as a Camera."""
     entry = dict(param)
     return Camera.from_config(entry, name=str(entry.pop("name", "camera")))
+
+
+def with_threads(section: Mapping[str, Any], key: str, threads: int) -> dict[str, Any]:
+    """A stage's config ``section`` with its threads ``key`` set to the job's ``threads``.
+
+    A rule's ``threads:`` is read from that same key, and Snakemake may lower it (``--cores``)
+    or override it (``--set-threads``); the stage then uses what the job was given.
+    """
+    return {**section, key: max(1, int(threads))}

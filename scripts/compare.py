@@ -6,6 +6,7 @@ from cystomap.compare import CompareConfig, compare_sessions
 from cystomap.compare.stage import SessionPaths
 from cystomap.logs import log_to
 from cystomap.settings import from_mapping
+from cystomap.snakemake_io import with_threads
 
 sm = snakemake  # type: ignore[name-defined]  # noqa: F821
 with log_to(sm.log[0]):
@@ -14,6 +15,6 @@ with log_to(sm.log[0]):
         SessionPaths(*a),
         SessionPaths(*b),
         Path(sm.output.compare),
-        from_mapping(CompareConfig, sm.params.compare, "compare"),
+        from_mapping(CompareConfig, with_threads(sm.params.compare, "threads", sm.threads), "compare"),
         landmarks=sm.params.landmarks,
     )

@@ -5,7 +5,7 @@ from pathlib import Path
 from cystomap.logs import log_to
 from cystomap.preprocess import PreprocessConfig, preprocess_frames
 from cystomap.settings import from_mapping
-from cystomap.snakemake_io import camera_param
+from cystomap.snakemake_io import camera_param, with_threads
 
 sm = snakemake  # type: ignore[name-defined]  # noqa: F821
 with log_to(sm.log[0]):
@@ -13,5 +13,5 @@ with log_to(sm.log[0]):
         Path(sm.input.frames),
         Path(sm.output.preprocessed),
         camera_param(sm.params.camera),
-        from_mapping(PreprocessConfig, sm.params.preprocess, "preprocess"),
+        from_mapping(PreprocessConfig, with_threads(sm.params.preprocess, "threads", sm.threads), "preprocess"),
     )

@@ -18,6 +18,18 @@ def repo() -> Path:
     return REPO
 
 
+# The slow tier: tests that render phantom sessions, run SfM or run Snakemake (``make test``
+# runs everything, ``make test-fast`` leaves them out with ``-m "not slow"``). A test is slow
+# when it uses one of these fixtures, is marked ``workflow``, or is marked ``slow`` itself.
+SLOW_FIXTURES = {"phantom_study", "workflow_factory", "sessions", "small_session", "phantom_videos"}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.get_closest_marker("workflow"):
+            item.add_marker(pytest.mark.slow)
+
+
 class Workflow:
     """A Snakemake working directory with its own config file (merged over config.yaml)."""
 

@@ -20,9 +20,11 @@ import pytest
 from cystomap.atlas import AtlasConfig, Projection, SurfaceRays, build_atlas
 from cystomap.atlas.model import read_glb, uv_unwrap
 from cystomap.atlas.projection import pixel_to_point, point_to_pixel
+from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.mesh import icosphere, volume_centroid, write_ply
 from cystomap.settings import from_mapping
+from cystomap.sfm.features import colmap_camera
 
 AXES = np.array([40.0, 32.0, 28.0])
 CENTRE = np.array([3.0, -2.0, 1.0])
@@ -84,7 +86,8 @@ def make_scene(root: Path, n_cams: int, hemisphere: bool, seed: int) -> dict[str
     cv2.imwrite(str(pre / "mask.png"), mask)
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(
-        model="PINHOLE", width=W, height=H, params=[F, F, k[0, 2], k[1, 2]], camera_id=1))
+        model="PINHOLE", width=W, height=H, params=list(colmap_camera(Camera(W, H, F, F, k[0, 2], k[1, 2]))),
+        camera_id=1))
     poses = []
     for i in range(n_cams):
         while True:
@@ -178,6 +181,71 @@ def half_scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     scene = make_scene(root, n_cams=18, hemisphere=True, seed=6)
     scene["out"] = build_atlas(scene["sfm"], scene["pre"], scene["mesh"], root / "atlas", ATLAS)
     return scene
+
+
+# --------------------------------------------------------------------------- pixel convention
+
+
+def test_image_pixels_land_on_their_atlas_pixels(tmp_path: Path) -> None:
+    """The sfm stage writes the camera in COLMAP's convention (principal point + 0.5); the
+    atlas must sample each frame where its wall point projects with pixel centres at
+    integers. A frame whose grey level is a known smooth function of its pixel coordinates
+    (no rendering: the function is the truth) must reach the atlas unshifted, to 0.05 px."""
+    import pycolmap
+
+    w, h, radius = 240, 180, 30.0
+    cam = Camera(w, h, 100.0, 100.0, (w - 1) / 2 + 3.3, (h - 1) / 2 - 2.1)  # off-centre
+    v, f = icosphere(5)
+    v = v * radius
+    rot, t = look_at(np.zeros(3), np.array([30.0, 5.0, 3.0]), np.array([0.0, 0.0, 1.0]))
+
+    def grey(u: np.ndarray, vv: np.ndarray) -> np.ndarray:
+        return 128 + 50 * np.sin(2 * np.pi * u / 23 + 0.3) + 50 * np.sin(2 * np.pi * vv / 19 + 1.1)
+
+    def gradient(u: np.ndarray, vv: np.ndarray) -> np.ndarray:
+        return np.stack([50 * 2 * np.pi / 23 * np.cos(2 * np.pi * u / 23 + 0.3),
+                         50 * 2 * np.pi / 19 * np.cos(2 * np.pi * vv / 19 + 1.1)], axis=1)
+
+    pre, sfm, mesh = tmp_path / "pre", tmp_path / "sfm", tmp_path / "surface.ply"
+    (pre / "color").mkdir(parents=True)
+    sfm.mkdir()
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    img = np.clip(np.rint(grey(uu, vv)), 0, 255).astype(np.uint8)
+    cv2.imwrite(str(pre / "color" / "f000000.png"), np.repeat(img[..., None], 3, axis=2))
+    cv2.imwrite(str(pre / "mask.png"), np.full((h, w), 255, np.uint8))
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(
+        model="PINHOLE", width=w, height=h, params=list(colmap_camera(cam)), camera_id=1))
+    rec.add_image_with_trivial_frame(pycolmap.Image(name="f000000.png", camera_id=1, image_id=1),
+                                     pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t))
+    rec.write(str(sfm))
+    write_ply(mesh, v, f)
+    # one view, no exposure model, glint or outlier weights, plain mean: the atlas is the
+    # frame resampled; 1024 columns keep the atlas pixel below an image pixel (no mip level)
+    cfg = AtlasConfig(width=1024, height=512, exposure="none", glint_rel=0, outlier_rel=0,
+                      inpaint_below=0, detail_power=1, model=False, threads=1)
+    out = build_atlas(sfm, pre, mesh, tmp_path / "atlas", cfg)
+    meta = json.loads((out / "atlas.json").read_text())
+    assert {"cystomap", "numpy", "opencv-python-headless", "pycolmap"} <= set(meta["software"])
+    atlas = cv2.imread(str(out / "atlas.png"), cv2.IMREAD_UNCHANGED)  # BGRA
+    proj = Projection(cfg.projection, cfg.width, cfg.height, np.asarray(meta["barycentre"]),
+                      np.asarray(meta["axes"]))
+    col, row = np.meshgrid(np.arange(cfg.width), np.arange(cfg.height))
+    pts, hit = pixel_to_point(proj, SurfaceRays(v, f), col.ravel(), row.ravel())
+    pc = pts @ rot.T + t
+    z = np.where(pc[:, 2] > 0, pc[:, 2], 1.0)
+    u = cam.fx * pc[:, 0] / z + cam.cx  # OpenCV: pixel centres at integers
+    vp = cam.fy * pc[:, 1] / z + cam.cy
+    inner = (hit & (pc[:, 2] > 0) & (u > 2) & (u < w - 3) & (vp > 2) & (vp < h - 3)
+             & (atlas[..., 3].ravel() == 255))
+    assert inner.sum() > 20000
+    seen = atlas[..., 1].ravel()[inner].astype(np.float64)
+    residual = seen - grey(u[inner], vp[inner])
+    # a shift (du, dv) of the sampling shows as residual = gradient · (du, dv)
+    grad = gradient(u[inner], vp[inner])
+    shift, *_ = np.linalg.lstsq(grad, residual, rcond=None)
+    assert np.abs(shift).max() < 0.05, f"atlas samples the frame {shift} px off"
+    assert np.sqrt(np.mean((residual - grad @ shift) ** 2)) < 1.0  # 0.54 measured (uint8)
 
 
 # --------------------------------------------------------------------------- projection

@@ -43,3 +43,29 @@ def test_bad_camera_entries_name_the_camera(entry, message):
     with pytest.raises(InputError, match="camera 'scope'") as err:
         Camera.from_config(entry, name="scope")
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_PINHOLE"])
+def test_colmap_round_trip_and_resize_keep_the_opencv_convention(model):
+    """A camera written for COLMAP (principal point + 0.5) reads back as the same OpenCV K,
+    at its own size and for resized images (as Camera.scaled), and keypoints project alike."""
+    import pycolmap
+
+    from cystomap.camera import (
+        colmap_params,
+        colmap_to_opencv_xy,
+        opencv_calibration,
+        opencv_to_colmap_xy,
+    )
+
+    cam = Camera(320, 240, 250.0, 250.0, 161.3, 117.8)
+    pc = pycolmap.Camera(model=model, width=cam.width, height=cam.height,
+                         params=list(colmap_params(cam, model)), camera_id=1)
+    assert opencv_calibration(pc) == pytest.approx(cam.K)
+    half = cam.scaled(0.5)
+    assert opencv_calibration(pc, half.width, half.height) == pytest.approx(half.K)
+    pts = np.array([[1.0, -2.0, 10.0], [-3.0, 0.5, 7.0]])
+    uv_colmap = np.asarray(pc.img_from_cam(pts))
+    assert colmap_to_opencv_xy(uv_colmap) == pytest.approx(cam.project(pts))
+    assert colmap_to_opencv_xy(uv_colmap, 0.5, 0.5) == pytest.approx(half.project(pts))
+    assert opencv_to_colmap_xy(cam.project(pts)) == pytest.approx(uv_colmap)

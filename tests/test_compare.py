@@ -244,7 +244,7 @@ def _check_lesions(score: dict, table: pd.DataFrame) -> None:
 
 
 def test_lesions_are_found_located_and_sized(sessions, tmp_path) -> None:
-    out, seconds = _run(sessions, "s1", "s2", tmp_path / "cmp")
+    out, _ = _run(sessions, "s1", "s2", tmp_path / "cmp")
     reg = json.loads((out / "registration.json").read_text())
     assert reg["registered"] and reg["inliers"] >= 25
     # B's stand-in model is 0.8 × the world: the similarity A → B recovers it
@@ -260,7 +260,6 @@ def test_lesions_are_found_located_and_sized(sessions, tmp_path) -> None:
         assert (out / name).is_file(), name
     summary = json.loads((out / "compare.json").read_text())
     assert summary["changes"] == len(table)
-    assert seconds < 60
 
 
 def test_deformed_pair(sessions, tmp_path) -> None:

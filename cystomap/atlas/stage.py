@@ -59,10 +59,11 @@ from cystomap.atlas.texture import (
     sharpness,
     view_weights,
 )
+from cystomap.camera import opencv_calibration
 from cystomap.errors import InputError, StageError
 from cystomap.images import imwrite_rgb
 from cystomap.mesh import load_reconstruction, read_mesh, volume_centroid
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
@@ -225,14 +226,8 @@ def load_views(
         if model not in ("PINHOLE", "SIMPLE_PINHOLE"):
             log.warning("%s: camera model %s; its distortion is ignored (frames should be "
                         "undistorted)", im.name, model)
-        k = np.asarray(cam.calibration_matrix(), dtype=np.float64).copy()
         h, w = mask.shape
-        if (w, h) != (cam.width, cam.height):
-            sx, sy = w / cam.width, h / cam.height
-            k[0, 0] *= sx
-            k[1, 1] *= sy
-            k[0, 2] = (k[0, 2] + 0.5) * sx - 0.5
-            k[1, 2] = (k[1, 2] + 0.5) * sy - 0.5
+        k = opencv_calibration(cam, w, h)
         cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         views.append(View(im.name, np.asarray(cfw.rotation.matrix(), dtype=np.float64),
                           np.asarray(cfw.translation, dtype=np.float64).reshape(3), k, w, h, path))
@@ -379,6 +374,7 @@ def build_atlas(
                                    "(glTF; OBJ vt = 1 - v)"}
         meta["seconds"] = {"paint": round(t_paint, 2),
                            "total": round(time.perf_counter() - t0, 2)}
+        meta["software"] = software_versions()
         write_json(tmp / "atlas.json", meta)
     log.info("%s: coverage %.1f%% of the wall, %d frames contributed (%.1f s)", out_dir,
              coverage, result.contributing, time.perf_counter() - t0)

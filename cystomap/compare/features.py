@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cystomap.camera import colmap_to_opencv_xy, opencv_calibration
 from cystomap.errors import InputError
 from cystomap.mesh import load_reconstruction
 
@@ -48,17 +49,6 @@ class _Obs:
     xy: np.ndarray  # (n, 2) OpenCV pixel coordinates (centres at integers)
     size: np.ndarray  # (n,) keypoint size in pixels
     row: np.ndarray  # (n,) index into the kept points
-
-
-def _calibration(cam, width: int, height: int) -> np.ndarray:
-    k = np.asarray(cam.calibration_matrix(), dtype=np.float64).copy()
-    if (width, height) != (cam.width, cam.height):
-        sx, sy = width / cam.width, height / cam.height
-        k[0, 0] *= sx
-        k[1, 1] *= sy
-        k[0, 2] = (k[0, 2] + 0.5) * sx - 0.5
-        k[1, 2] = (k[1, 2] + 0.5) * sy - 0.5
-    return k
 
 
 def _image_size(enhanced: Path, name: str) -> tuple[int, int] | None:
@@ -137,7 +127,7 @@ def collect_observations(
         if wh is None or not (enhanced / Path(im.name).name).is_file():
             continue
         cam = rec.cameras[im.camera_id]
-        k = _calibration(cam, *wh)
+        k = opencv_calibration(cam, *wh)
         sx, sy = wh[0] / cam.width, wh[1] / cam.height
         cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         rot = np.asarray(cfw.rotation.matrix(), dtype=np.float64)
@@ -159,8 +149,9 @@ def collect_observations(
         names.append(im.name)
         o_row.append(rows_a[ok])
         o_img.append(np.full(int(ok.sum()), idx))
-        o_x.append((xy_a[ok, 0]) * sx - 0.5)  # COLMAP pixel corner at 0 → OpenCV centres
-        o_y.append((xy_a[ok, 1]) * sy - 0.5)
+        cv_xy = colmap_to_opencv_xy(xy_a[ok], sx, sy)
+        o_x.append(cv_xy[:, 0])
+        o_y.append(cv_xy[:, 1])
         o_depth.append(depth[ok])
         o_size.append(k[0, 0] * keypoint_size_mm / depth[ok])
     if not names:

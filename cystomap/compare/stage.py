@@ -77,7 +77,7 @@ from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
 from cystomap.compare.registration import Registration, register
 from cystomap.errors import InputError, StageError
 from cystomap.images import imwrite_rgb
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +214,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             seconds=times,
             config=asdict(cfg),
         )
-        write_json(tmp / "compare.json", summary)
+        write_json(tmp / "compare.json", {**summary, "software": software_versions()})
     log.info("compare: %s, %d change(s) in %.1f s -> %s",
              "registered" if reg.registered else "NOT registered", len(regions),
              times["total"], out_dir)

@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from cystomap.camera import colmap_to_opencv_xy, opencv_to_colmap_xy
 from cystomap.errors import InputError
 from cystomap.images import sample_bilinear
 from cystomap.sfm.config import SfmConfig
@@ -263,7 +264,7 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
         if corners is None:
             continue
         cv_xy = corners.reshape(-1, 2).astype(np.float64)
-        xy = cv_xy + 0.5
+        xy = opencv_to_colmap_xy(cv_xy)
         # depth of each corner: median depth of the nearest model points seen in this frame
         image = rec.image(ref_id)
         pts = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
@@ -290,12 +291,12 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
             sel, tpl = sel[keep], tpl[keep]
             if not len(sel):
                 continue
-            start = pred[sel] - 0.5
+            start = colmap_to_opencv_xy(pred[sel])
             pos, zncc, live = _align(frames.get(names[tgt_id]), tpl, start, gx, gy,
                                      cfg.densify_iterations)
             shift = np.linalg.norm(pos - start, axis=1)
             accept = live & (zncc >= cfg.densify_min_zncc) & (shift <= cfg.densify_max_shift_px)
-            for c, p in zip(sel[accept], pos[accept] + 0.5, strict=True):
+            for c, p in zip(sel[accept], opencv_to_colmap_xy(pos[accept]), strict=True):
                 found[c].append((tgt_id, p))
             n_aligned += int(accept.sum())
         tracks.extend(t for t in found if len(t) >= cfg.densify_min_views)

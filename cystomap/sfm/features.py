@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cystomap.camera import Camera
+from cystomap.camera import Camera, colmap_params
 from cystomap.errors import InputError
 from cystomap.sfm.config import SfmConfig
 
@@ -50,11 +50,8 @@ def list_frames(enhanced_dir: Path) -> list[str]:
 
 
 def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
-    """PINHOLE (fx, fy, cx, cy) or SIMPLE_PINHOLE (f, cx, cy) parameters in COLMAP's
-    convention (pixel corner at 0, so pixel centres at +0.5)."""
-    if model == "SIMPLE_PINHOLE":
-        return 0.5 * (camera.fx + camera.fy), camera.cx + 0.5, camera.cy + 0.5
-    return camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5
+    """The camera's parameters in COLMAP's convention (:func:`cystomap.camera.colmap_params`)."""
+    return colmap_params(camera, model)
 
 
 def working_scale(camera: Camera, cfg: SfmConfig) -> float:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
-from cystomap.outputs import atomic_dir, write_json
+from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.sfm import features as feat
 from cystomap.sfm import mapping, matching, pairs, quality, scale
 from cystomap.sfm.config import SfmConfig
@@ -171,7 +171,8 @@ def run_sfm(
                 {"final_adjustment": result.final_ba,
                  "intrinsics": "refined" if refine else "fixed",
                  "working_scale": features.scale,
-                 "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()}},
+                 "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()},
+                 "software": software_versions()},
                 cfg.min_num_inliers,
             )
             write_json(out / "quality.json", q)

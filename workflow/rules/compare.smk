@@ -23,7 +23,7 @@ rule compare:
         "logs/{subject}/compare/{a}_vs_{b}.log",
     benchmark:
         "benchmarks/{subject}/compare/{a}_vs_{b}.tsv"
-    threads: 2
+    threads: config["compare"]["threads"]
     resources:
         mem_mb=6000,
         runtime=20,

@@ -14,7 +14,7 @@ rule phantom_session:
         "logs/{subject}/phantom/{session}.log",
     benchmark:
         "benchmarks/{subject}/phantom/{session}.tsv"
-    threads: 2
+    threads: config["phantom"]["threads"] or 2  # 0 = the machine's cores, at most 2
     resources:
         mem_mb=4000,
         runtime=20,

@@ -1,0 +1,80 @@
+"""Workflow set-up, checked without running a job: the default profile is found by a plain
+``snakemake``, and each rule's ``threads`` come from the stage's threads key and reach it."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+from snakemake.cli import parse_args
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("where", ["repository", "elsewhere"])
+def test_plain_snakemake_uses_the_default_profile(where, monkeypatch, capsys, tmp_path) -> None:
+    if where == "repository":
+        monkeypatch.chdir(REPO)
+        argv = ["--cores", "2"]  # `snakemake --cores 2` in the checkout
+    else:
+        monkeypatch.chdir(tmp_path)
+        argv = ["-s", str(REPO / "Snakefile"), "--cores", "2"]
+    _, args = parse_args(argv)
+    found = re.search(r"workflow specific profile (\S+) for", capsys.readouterr().err)
+    assert found, "no workflow profile found"
+    assert Path(found.group(1)).resolve() == REPO / "profiles" / "default"
+    assert args.rerun_incomplete and args.show_failed_logs  # set only by the profile
+
+
+def test_rule_threads_flow_into_the_stage() -> None:
+    rules = {}
+    for smk in sorted((REPO / "workflow" / "rules").glob("*.smk")):
+        for block in re.split(r"\nrule ", "\n" + smk.read_text())[1:]:
+            name = block.split(":", 1)[0]
+            threads = re.search(r"\n    threads: (.+)", block)
+            script = re.search(r'\n    script:\n        "(?:\.\./)+(scripts/\w+\.py)"', block)
+            if threads and script:
+                rules[name] = (threads.group(1), REPO / script.group(1))
+    keyed = {n: r for n, r in rules.items() if "config[" in r[0]}
+    assert {"phantom_session", "frames", "preprocess", "sfm", "atlas", "compare"} <= set(keyed)
+    for name, (threads, script) in keyed.items():
+        section, key = re.match(r'config\["(\w+)"\]\["(\w+)"\]', threads).groups()
+        text = script.read_text()
+        assert re.search(rf'with_threads\([^\n]*sm\.params\.{section}\b[^\n]*"{key}", sm\.threads\)', text), (
+            f"rule {name}: {script.name} does not give the stage its job's threads ({section}.{key})")
+    for name, (threads, _) in rules.items():
+        if name not in keyed:
+            assert threads.strip() in ("1", "2"), name
+
+
+def test_with_threads_sets_the_key() -> None:
+    from cystomap.snakemake_io import with_threads
+
+    section = {"threads": 2, "other": 1}
+    assert with_threads(section, "threads", 1) == {"threads": 1, "other": 1}
+    assert section["threads"] == 2  # the config itself is left alone
+
+
+def test_constraints_pin_every_direct_dependency_at_the_installed_version() -> None:
+    import tomllib
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+
+    from cystomap.outputs import software_versions
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    direct = [Requirement(r).name.lower() for r in
+              project["dependencies"] + project["optional-dependencies"]["dev"]]
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            name, _, pinned = line.partition("==")
+            pins[name.strip().lower()] = pinned.strip()
+    assert sorted(pins) == sorted(direct)
+    for name, pinned in pins.items():
+        assert version(name) == pinned, name
+    recorded = software_versions()
+    assert recorded["cystomap"] and all(recorded[k] == pins[k] for k in recorded if k in pins)
