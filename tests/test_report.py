@@ -273,3 +273,14 @@ def test_geometry_json_round_trips():
     back = np.array(g["origin"]) + q * np.array(g["step"])
     assert np.abs(back - v).max() < 0.002 and g["index_bits"] == 16
     assert np.frombuffer(base64.b64decode(g["faces"]), "<u2").tolist() == [0, 1, 2]
+
+
+def test_sfm_self_check_in_words():
+    from cystomap.report.data import consistency_text
+
+    text, weak = consistency_text({"loop_pairs": 119, "loop_pairs_agreeing": 119,
+                                   "weakest_seam_share": 1.0, "seams_weak": [], "consistent": True})
+    assert "119 of 119 loop-closure pairs" in text and "100 %" in text and not weak
+    text, weak = consistency_text({"loop_pairs": 40, "loop_pairs_agreeing": 9,
+                                   "weakest_seam_share": 0.8, "seams_weak": [], "consistent": True})
+    assert "9 of 40" in text and weak

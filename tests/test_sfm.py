@@ -81,6 +81,11 @@ def test_small_session_registers_accurately(small_session, tmp_path):
     assert abs(q["scale"]["cross_check"]["relative_difference"]) < 0.1
     assert q["scale"]["factor"] * q["scale"]["model_extent"] == pytest.approx(truth.extent_mm)
     assert q["mean_reprojection_error_mm"] < 0.1
+    # self-check recorded: loop pairs were used, agree with the model, no fold or break
+    c = q["consistency"]
+    assert c["consistent"] and c["seams_broken"] == [] and c["weakest_seam_share"] > 0.5, c
+    assert c["loop_pairs"] > 20 and c["loop_agreeing_share"] > 0.8, c
+    assert q["final_adjustment"]["loops"]["loop_pairs_accepted"] > 20
 
     report = evaluate_session(truth_dir, out)
     traj = report["trajectory"]

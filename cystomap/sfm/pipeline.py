@@ -1,10 +1,12 @@
 """The structure-from-motion stage: preprocessed frames -> camera poses and a sparse cloud.
 
 Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
-video-order neighbours + VLAD retrieval neighbours (loop closure); COLMAP matching and
-two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
-refined intrinsics; densification with corner tracks aligned on the full-size frames; a final
-filter-and-adjust pass; metric scale from the known extent or volume of the bladder.
+video-order neighbours; COLMAP matching and two-view verification; incremental mapping with
+bundle adjustment and fixed (calibrated) or refined intrinsics; VLAD retrieval pairs (loop
+closure), used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
+densification with corner tracks aligned on the full-size frames; a final
+filter-and-adjust pass; a self-check that fails a folded model; metric scale from the known
+extent or volume of the bladder.
 """
 
 from __future__ import annotations
@@ -84,7 +86,8 @@ def run_sfm(
     ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing.
 
     Raises :class:`StageError` when too few frames register (the message says how many and
-    why) and :class:`InputError` when the inputs are missing or inconsistent.
+    why) or the model contradicts the matches that link its parts (a fold), and
+    :class:`InputError` when the inputs are missing or inconsistent.
     """
     cfg = cfg or SfmConfig()
     pre = Path(preprocessed_dir)
