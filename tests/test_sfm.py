@@ -24,7 +24,7 @@ from cystomap.sfm.scale import estimate_scale
 # it is poor, while the 1280x720 render downsampled to 640 is fine; see cystomap.bench.sfm.)
 SMALL_SCALE = 0.5
 FAST = {"max_image_size": 0, "num_threads": 2}
-RMSE_GLINT = 0.6  # mm; measured 0.XX
+RMSE_GLINT = 0.6  # mm; measured 0.296 at one thread (seed 3)
 
 
 def _phantom_camera() -> Camera:
@@ -278,11 +278,15 @@ def test_glints_blur_and_bad_frames_register_in_one_model(glint_session, tmp_pat
     assert glints["frames_with_glints"] > 30 and glints["max"] > 0.02, glints
     assert len(list((pre / "masks").glob("f*.png"))) == load_truth(truth_dir).n_frames
     out = tmp_path / "sfm"
-    run_sfm(pre, out, from_mapping(SfmConfig, FAST, "sfm"),
+    # one thread: at two, feature extraction and matching vary a little from run to run, and
+    # on this blurred session that changes which frames register (seen: 1 model of 117
+    # frames, or 113 + a piece of 4)
+    run_sfm(pre, out, from_mapping(SfmConfig, {**FAST, "num_threads": 1}, "sfm"),
             extent_mm=load_truth(truth_dir).extent_mm)
     q = json.loads((out / "quality.json").read_text())
-    assert q["models_found"] == 1 and q["other_models"] == []
     report = evaluate_session(truth_dir, out)
+    print("glint session:", report["registration"], report["trajectory"])
+    assert q["models_found"] == 1 and q["other_models"] == [], q["other_models"]
     reg, traj = report["registration"], report["trajectory"]
     usable = reg["n_frames"] - reg["n_bad_frames"]
     assert reg["n_bad_frames"] == 7
