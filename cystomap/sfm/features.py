@@ -50,11 +50,9 @@ def list_frames(enhanced_dir: Path) -> list[str]:
 
 
 def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
-    """PINHOLE (fx, fy, cx, cy) or SIMPLE_PINHOLE (f, cx, cy) parameters in COLMAP's
-    convention (pixel corner at 0, so pixel centres at +0.5)."""
-    if model == "SIMPLE_PINHOLE":
-        return 0.5 * (camera.fx + camera.fy), camera.cx + 0.5, camera.cy + 0.5
-    return camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5
+    """Parameters of COLMAP ``model`` (PINHOLE, or a self-calibrated model such as RADIAL) in
+    COLMAP's convention (pixel corner at 0, so pixel centres at +0.5)."""
+    return camera.colmap_params(model)
 
 
 def working_scale(camera: Camera, cfg: SfmConfig) -> float:

@@ -4,6 +4,7 @@ final filter-and-adjust pass."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,15 @@ def refine_intrinsics(cfg: SfmConfig, calibrated: bool) -> bool:
     return cfg.intrinsics == "refine"
 
 
+def camera_model(cfg: SfmConfig, calibrated: bool) -> str:
+    """COLMAP model of the shared camera: PINHOLE when fixed, else the self-calibration's."""
+    return cfg.self_calibration_model if refine_intrinsics(cfg, calibrated) else "PINHOLE"
+
+
+def _refine_distortion(cfg: SfmConfig, refine: bool) -> bool:
+    return refine and cfg.self_calibration_model != "SIMPLE_PINHOLE"
+
+
 def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     import pycolmap
 
@@ -43,7 +53,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.image_path = str(image_path)
     o.ba_refine_focal_length = refine
     o.ba_refine_principal_point = False
-    o.ba_refine_extra_params = False
+    o.ba_refine_extra_params = _refine_distortion(cfg, refine)
     o.ba_global_frames_ratio = cfg.ba_global_ratio
     o.ba_global_points_ratio = cfg.ba_global_ratio
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
@@ -57,7 +67,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     m.abs_pose_max_error = cfg.abs_pose_max_error_px
     m.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
     m.abs_pose_refine_focal_length = refine
-    m.abs_pose_refine_extra_params = False
+    m.abs_pose_refine_extra_params = _refine_distortion(cfg, refine)
     m.filter_max_reproj_error = cfg.max_reproj_error_px
     t = o.triangulation
     t.random_seed = cfg.seed
@@ -108,11 +118,15 @@ def reconstruct(
     database: Path, color_dir: Path, work_dir: Path, cfg: SfmConfig, calibrated: bool,
     names: list[str], key: list[int], enhanced_dir: Path | None = None,
     mask_path: Path | None = None,
+    undistort: Callable[[Any], tuple[Path, Path | None]] | None = None,
 ) -> MappingResult | None:
     """Map the keyframes ``key`` (indices into ``names``) incrementally, register the other
     frames to that model (pose + triangulation, no local adjustment), add full-size corner
     tracks (``densify_corners``; on the frames of ``enhanced_dir`` inside ``mask_path``), then
     adjust globally.
+    With ``undistort`` (self-calibrated distortion) the model is made pinhole before
+    densification (it returns the undistorted enhanced frames and mask), and the final
+    adjustment keeps the intrinsics it was undistorted with.
     ``None`` when no model of at least ``min_model_frames`` was found."""
     import pycolmap
 
@@ -137,6 +151,9 @@ def reconstruct(
     added = 0
     if len(key) < len(names):
         added = register_rest(database, rec, names, opts)
+    if undistort is not None:
+        enhanced_dir, mask_path = undistort(rec)
+        refine = False
     dense: dict[str, int] = {}
     if enhanced_dir is not None and cfg.densify_corners > 0:
         mask = None

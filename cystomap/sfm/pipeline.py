@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -21,7 +22,7 @@ from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.outputs import atomic_dir, write_json
 from cystomap.sfm import features as feat
-from cystomap.sfm import mapping, matching, pairs, quality, scale
+from cystomap.sfm import intrinsics, mapping, matching, pairs, quality, scale
 from cystomap.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,11 @@ def run_sfm(
         work = Path(tmp)
         database = work / "database.db"
         refine = mapping.refine_intrinsics(cfg, camera.calibrated)
-        model = "SIMPLE_PINHOLE" if refine else "PINHOLE"  # one focal length when refined
+        model = mapping.camera_model(cfg, camera.calibrated)
+        undistort = None
+        if model in intrinsics.DISTORTION_MODELS:  # self-calibrated lens: undistorted after mapping
+            undistort = intrinsics.Undistortion(pre, work / intrinsics.UNDISTORTED, camera, names,
+                                                cfg.num_threads)
         with timer.step("features"):
             features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model)
         with timer.step("matching"):
@@ -135,7 +140,7 @@ def run_sfm(
             )
         with timer.step("mapping"):
             result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key, enhanced, mask)
+                                         names, key, enhanced, mask, undistort)
         if result is None:
             matched = sum(1 for v in matches.verified_per_image.values() if v)
             raise StageError(
@@ -152,6 +157,8 @@ def run_sfm(
                 f"{matches.num_verified} of {n_tried} pairs verified"
             )
         mapping.as_pinhole(rec)
+        if undistort is not None:
+            color_dir = undistort.color_dir
         with timer.step("scale"):
             xyz, _, length, _ = quality.points_arrays(rec)
             est = scale.estimate_scale(
@@ -163,6 +170,11 @@ def run_sfm(
             log.info("colours: from %d of %d frames", n_read, n_reg)
         with timer.step("write"), atomic_dir(out_dir) as out:
             rec.write_binary(str(out))
+            if undistort is not None:
+                shutil.copytree(undistort.out, out / intrinsics.UNDISTORTED)
+                undistort.write(out)
+            else:
+                camera.save(out / "camera.json")
             xyz, rgb, _, _ = quality.points_arrays(rec)
             quality.write_ply(out / "points.ply", xyz, rgb)
             timings, cpu_times = timer.totals()
@@ -170,6 +182,8 @@ def run_sfm(
                 rec, names, features, matches, result.models, pair_stats, est.to_dict(), timings,
                 {"final_adjustment": result.final_ba,
                  "intrinsics": "refined" if refine else "fixed",
+                 "calibration": undistort.summary if undistort is not None
+                 else intrinsics.fixed_summary(camera),
                  "working_scale": features.scale,
                  "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()}},
                 cfg.min_num_inliers,
