@@ -43,3 +43,22 @@ def test_bad_camera_entries_name_the_camera(entry, message):
     with pytest.raises(InputError, match="camera 'scope'") as err:
         Camera.from_config(entry, name="scope")
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"])
+def test_colmap_models_round_trip(model):
+    """COLMAP parameters (pixel corner at 0) <-> Camera (centres at integers), with the
+    coefficients each model has; pycolmap projects like Camera.project."""
+    import numpy as np
+    import pycolmap
+
+    cam = Camera(640, 360, 470.0, 470.0, 319.5, 179.5, (-0.2, 0.02, 0.0, 0.0, 0.0))
+    params = cam.colmap_params(model)
+    back = Camera.from_colmap(model, 640, 360, params)
+    assert (back.cx, back.cy, back.fx) == pytest.approx((319.5, 179.5, 470.0))
+    if model in ("RADIAL", "OPENCV"):
+        assert back == cam
+    col = pycolmap.Camera.create_from_model_name(1, model, 470.0, 640, 360)
+    col.params = list(params)
+    pts = np.array([[0.3, -0.2, 1.0], [-0.5, 0.35, 1.0]])
+    np.testing.assert_allclose(col.img_from_cam(pts) - 0.5, back.project(pts), atol=1e-6)
