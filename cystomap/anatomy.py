@@ -273,7 +273,7 @@ def estimate(names: list[str], rotations: np.ndarray, centres: np.ndarray, origi
     if hint.neck_point is None or hint.anterior_point is None:
         if n == 0:
             raise InputError("anatomy: no registered frame to find the scope's entry from")
-        lead = max(ENTRY_MIN_FRAMES, math.ceil(ENTRY_SHARE * n))
+        lead = min(n, max(ENTRY_MIN_FRAMES, math.ceil(ENTRY_SHARE * n)))
         rel = cen[:lead] - origin
         r = np.linalg.norm(rel, axis=1)
         t, _ = rays.cast(origin, _unit(rel))
