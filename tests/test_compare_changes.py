@@ -14,7 +14,7 @@ import pytest
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare import CompareConfig
-from cystomap.compare.changes import detect, mean_colour_difference, threshold_of
+from cystomap.compare.changes import changed_mask, detect, mean_colour_difference
 from cystomap.compare.difference import compute_difference, painted_b, wall_grid
 
 RADIUS = 40.0
@@ -53,7 +53,7 @@ def _run(sphere, a_unseen, b_unseen, lesion_colour=LESION, noise=2.0, **kw):
     cfg = CompareConfig(**kw)
 
     def hint(sig, joint):
-        return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
+        return changed_mask(sig, joint, grid.area, cfg.false_alarm_rate)
 
     b_seen = grid.hit & ~b_unseen
     diff = compute_difference(grid, b.astype(np.float32), b_seen,
