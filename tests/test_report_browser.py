@@ -10,6 +10,7 @@ variable set) and are skipped elsewhere.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -198,6 +199,8 @@ def test_phantom_pdf_from_its_rule(phantom_study):
     cards = html.read_text().count("<article class='card'")
     assert html.stat().st_mtime_ns == before
     assert pdf_pages(pdf) == 1 + cards, (pdf_pages(pdf), cards)
+    logging.getLogger(__name__).info("phantom report.pdf: %d pages, %d cards, %.2f MB", pdf_pages(pdf), cards,
+                                     len(pdf) / 1e6)
 
 
 def test_synthetic_report_prints_a_summary_page_and_a_page_per_card(tmp_path):
