@@ -41,11 +41,30 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from cystomap.errors import InputError, StageError
+from cystomap.geometry.pointcloud import statistical_inliers, voxel_bin
+from cystomap.geometry.quadric import Ellipsoid, fit_ellipsoid, sphere_fit
+from cystomap.geometry.sphere import direction_weights, icosphere, sphere_laplacian
+from cystomap.geometry.trimesh import (
+    mesh_volume,
+    point_distances,
+    topology,
+    triangle_areas,
+    vertex_normals,
+    volume_centroid,
+)
+from cystomap.io.colmap import find_model_dir, load_reconstruction
+from cystomap.io.ply import read_mesh, write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
-MODEL_FILES = ("cameras", "images", "points3D")
+# the stage, and the core names older callers (report, tests) import from here
+__all__ = [
+    "MeshConfig", "SparseCloud", "SurfaceFit", "build_mesh", "find_model_dir",
+    "fit_closed_surface", "icosphere", "load_reconstruction", "load_sparse_cloud",
+    "mesh_volume", "point_distances", "read_mesh", "remove_outliers", "topology",
+    "triangle_areas", "vertex_normals", "volume_centroid", "voxel_bin", "write_ply",
+]
 
 
 @dataclass(frozen=True)
@@ -189,27 +208,6 @@ class SparseCloud:
     n_read: int
 
 
-def find_model_dir(sfm_dir: Path) -> Path | None:
-    """The directory holding the COLMAP model (``sfm_dir`` itself or one level below)."""
-    for d in (sfm_dir, *sorted(p for p in sfm_dir.glob("*") if p.is_dir())):
-        if all((d / f"{n}.bin").is_file() or (d / f"{n}.txt").is_file() for n in MODEL_FILES):
-            return d
-    return None
-
-
-def load_reconstruction(sfm_dir: Path) -> Any:
-    """The COLMAP model of ``sfm_dir`` as a ``pycolmap.Reconstruction``."""
-    import pycolmap
-
-    model = find_model_dir(sfm_dir)
-    if model is None:
-        raise InputError(f"{sfm_dir}: no COLMAP model (cameras.bin, images.bin, points3D.bin)")
-    try:
-        return pycolmap.Reconstruction(str(model))
-    except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError
-        raise InputError(f"{model}: cannot read the COLMAP model ({exc})") from exc
-
-
 def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
     """Points of the COLMAP model (filtered by track length and error) or of ``points.ply``."""
     if not sfm_dir.is_dir():
@@ -319,28 +317,9 @@ def remove_outliers(points: np.ndarray, cfg: MeshConfig) -> np.ndarray:
     """Statistical outlier removal (mean distance to the k nearest neighbours)."""
     if cfg.outlier_neighbours <= 0 or len(points) <= cfg.outlier_neighbours + 1:
         return points
-    from scipy.spatial import cKDTree
-
-    k = cfg.outlier_neighbours
-    d, _ = cKDTree(points).query(points, k=k + 1)
-    mean_d = d[:, 1:].mean(axis=1)
-    med = np.median(mean_d)
-    sigma = 1.4826 * np.median(np.abs(mean_d - med))
-    keep = mean_d <= med + cfg.outlier_std_ratio * max(sigma, 1e-12)
+    keep = statistical_inliers(points, cfg.outlier_neighbours, cfg.outlier_std_ratio)
     log.info("outlier removal: %d of %d points dropped", int((~keep).sum()), len(points))
     return points[keep]
-
-
-def voxel_bin(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Mean of the points in each occupied voxel of side ``voxel``."""
-    if voxel <= 0:
-        return points
-    key = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    out = np.zeros((len(counts), 3))
-    np.add.at(out, inv, points)
-    return out / counts[:, None]
 
 
 def initial_centre(points: np.ndarray, hint: np.ndarray | None) -> np.ndarray:
@@ -351,146 +330,6 @@ def initial_centre(points: np.ndarray, hint: np.ndarray | None) -> np.ndarray:
     if centre is None or np.linalg.norm(centre - med) > 2.0 * spread:
         centre = hint if hint is not None else points.mean(axis=0)
     return np.asarray(centre, dtype=np.float64)
-
-
-def sphere_fit(points: np.ndarray, iterations: int = 5) -> np.ndarray | None:
-    """Algebraic sphere fit, reweighted to resist outliers; ``None`` if degenerate."""
-    a = np.hstack([2 * points, np.ones((len(points), 1))])
-    b = (points**2).sum(axis=1)
-    w = np.ones(len(points))
-    sol = None
-    for _ in range(iterations):
-        sw = np.sqrt(w)[:, None]
-        sol, *_ = np.linalg.lstsq(a * sw, b * sw[:, 0], rcond=None)
-        c = sol[:3]
-        r2 = sol[3] + c @ c
-        if not r2 > 0:
-            return None
-        res = np.linalg.norm(points - c, axis=1) - math.sqrt(r2)
-        s = 1.4826 * np.median(np.abs(res)) + 1e-12
-        w = 1.0 / np.maximum(1.0, np.abs(res) / (2 * s))
-    return None if sol is None else sol[:3]
-
-
-def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit icosphere (vertices on the sphere, outward-oriented faces)."""
-    t = (1 + math.sqrt(5)) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]], dtype=np.int64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    for _ in range(subdivisions):
-        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        uniq, inv = np.unique(edges, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
-        mid = v[uniq[:, 0]] + v[uniq[:, 1]]
-        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-        m = len(f)
-        a, b, c = f[:, 0], f[:, 1], f[:, 2]
-        ab, bc, ca = (inv[:m] + len(v), inv[m : 2 * m] + len(v), inv[2 * m :] + len(v))
-        f = np.concatenate([np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1),
-                            np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)])
-        v = np.vstack([v, mid])
-    return v, f
-
-
-def sphere_laplacian(v: np.ndarray, f: np.ndarray) -> sp.csr_matrix:
-    """Uniform graph Laplacian scaled to approximate Laplace-Beltrami on the unit sphere."""
-    n = len(v)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                        shape=(n, n)).tocsr()
-    deg = np.asarray(adj.sum(axis=1)).ravel()
-    h = float(np.mean(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)))
-    # On a regular triangular grid of spacing h: mean(neighbours) - f ≈ h²/4 · Δf.
-    return (4.0 / h**2) * (sp.diags(1.0 / deg) @ adj - sp.identity(n)).tocsr()
-
-
-def direction_weights(
-    dirs: np.ndarray, sphere_v: np.ndarray, sphere_f: np.ndarray
-) -> sp.csr_matrix:
-    """Sparse (N, V) barycentric interpolation of vertex values at unit directions ``dirs``."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(sphere_v.astype(np.float32)),
-                        o3d.core.Tensor(sphere_f.astype(np.uint32)))
-    rays = np.hstack([np.zeros_like(dirs), dirs]).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
-    tri = ans["primitive_ids"].numpy().astype(np.int64)
-    uv = ans["primitive_uvs"].numpy().astype(np.float64)
-    miss = tri >= len(sphere_f)  # INVALID_ID: only for degenerate directions
-    tri[miss] = 0
-    bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    bary[miss] = 1.0 / 3.0
-    rows = np.repeat(np.arange(len(dirs)), 3)
-    return sp.csr_matrix((bary.ravel(), (rows, sphere_f[tri].ravel())),
-                         shape=(len(dirs), len(sphere_v)))
-
-
-@dataclass(frozen=True)
-class Ellipsoid:
-    """{p : (p - centre)ᵀ A (p - centre) = 1}, A symmetric positive definite."""
-
-    centre: np.ndarray
-    a: np.ndarray
-
-    def radius(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Distance from ``origin`` (inside) along unit ``dirs`` to the ellipsoid."""
-        o = origin - self.centre
-        qa = np.einsum("ij,jk,ik->i", dirs, self.a, dirs)
-        qb = 2.0 * dirs @ (self.a @ o)
-        qc = float(o @ self.a @ o) - 1.0
-        disc = np.maximum(qb * qb - 4 * qa * qc, 0.0)
-        return (-qb + np.sqrt(disc)) / (2 * qa)
-
-    def contains(self, p: np.ndarray) -> bool:
-        d = p - self.centre
-        return float(d @ self.a @ d) < 1.0
-
-    @classmethod
-    def sphere(cls, centre: np.ndarray, radius: float) -> Ellipsoid:
-        return cls(np.asarray(centre, float), np.eye(3) / radius**2)
-
-
-def fit_ellipsoid(points: np.ndarray, iterations: int = 4) -> Ellipsoid | None:
-    """Robust algebraic ellipsoid fit (trace-constrained quadric); ``None`` if not an ellipsoid."""
-    m = points.mean(axis=0)
-    s = float(np.sqrt(((points - m) ** 2).sum(axis=1).mean()))
-    x, y, z = ((points - m) / s).T
-    d = np.stack([x * x + y * y - 2 * z * z, x * x + z * z - 2 * y * y, 2 * x * y, 2 * x * z,
-                  2 * y * z, 2 * x, 2 * y, 2 * z, np.ones_like(x)], axis=1)
-    rhs = x * x + y * y + z * z
-    w = np.ones(len(x))
-    ell = None
-    for _ in range(iterations):
-        sw = np.sqrt(w)
-        # A little ridge keeps the fit defined when only part of the wall was seen.
-        lhs = (d * sw[:, None]).T @ (d * sw[:, None]) + 1e-6 * len(x) * np.eye(9)
-        u = np.linalg.solve(lhs, (d * sw[:, None]).T @ (rhs * sw))
-        q = np.array([[u[0] + u[1] - 1, u[2], u[3]], [u[2], u[0] - 2 * u[1] - 1, u[4]],
-                      [u[3], u[4], u[1] - 2 * u[0] - 1]])
-        lin = u[5:8]
-        try:
-            c = -np.linalg.solve(q, lin)
-        except np.linalg.LinAlgError:
-            return None
-        k = float(c @ q @ c) - u[8]
-        a_mat = q / k
-        ev = np.linalg.eigvalsh(a_mat)
-        if not (ev.min() > 0 and ev.min() > 0.02 * ev.max()):
-            return None
-        ell = Ellipsoid(m + s * c, a_mat / s**2)
-        p = points - ell.centre
-        g = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", p, ell.a, p), 1e-300))
-        res = (g - 1.0) / np.sqrt(ev.mean())  # ≈ radial distance to the ellipsoid
-        sigma = 1.4826 * float(np.median(np.abs(res))) + 1e-12
-        w = 1.0 / np.maximum(1.0, np.abs(res) / (2 * sigma))
-    return ell
 
 
 def fit_radial(
@@ -561,100 +400,3 @@ def isotropic_remesh(
 # --------------------------------------------------------------------------- mesh utilities
 
 
-def triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
-def mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
-    """Signed volume of a closed mesh (positive for outward-oriented faces)."""
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def volume_centroid(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Centre of mass of the solid bounded by a closed mesh."""
-    o = verts.mean(axis=0)
-    a, b, c = (verts[faces[:, i]] - o for i in range(3))
-    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-    total = vol.sum()
-    if abs(total) < 1e-300:
-        return o
-    return o + ((a + b + c) / 4.0 * vol[:, None]).sum(axis=0) / total
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    fn = np.cross(b - a, c - a)
-    vn = np.zeros_like(verts)
-    for i in range(3):
-        np.add.at(vn, faces[:, i], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-
-
-def topology(verts: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
-    """Watertight (no boundary edge), two-manifold (edges and vertices), genus (pymeshlab)."""
-    import pymeshlab as ml
-
-    ms = ml.MeshSet()
-    ms.add_mesh(ml.Mesh(vertex_matrix=verts, face_matrix=faces.astype(np.int32)))
-    t = ms.get_topological_measures()
-    manifold = bool(t["is_mesh_two_manifold"]) and t["non_two_manifold_vertices"] == 0
-    return {
-        "watertight": manifold and t["boundary_edges"] == 0 and t["number_holes"] == 0,
-        "manifold": manifold,
-        "genus": int(t["genus"]),
-        "components": int(t["connected_components_number"]),
-    }
-
-
-def point_distances(verts: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Unsigned distance of each point to the mesh (open3d, float32 about the mesh centre)."""
-    import open3d as o3d
-
-    if len(points) == 0:
-        return np.zeros(0)
-    o = verts.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((verts - o).astype(np.float32)),
-                        o3d.core.Tensor(faces.astype(np.uint32)))
-    q = o3d.core.Tensor((np.asarray(points) - o).astype(np.float32))
-    return scene.compute_distance(q).numpy().astype(np.float64)
-
-
-def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray,
-              normals: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY with float vertices (and normals) and int faces."""
-    verts = np.asarray(verts, dtype="<f4")
-    has_n = normals is not None
-    header = ["ply", "format binary_little_endian 1.0", "comment cystomap mesh (mm)",
-              f"element vertex {len(verts)}", "property float x", "property float y",
-              "property float z"]
-    if has_n:
-        header += ["property float nx", "property float ny", "property float nz"]
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices",
-               "end_header"]
-    vdata = np.hstack([verts, np.asarray(normals, dtype="<f4")]) if has_n else verts
-    fdata = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    fdata["n"] = 3
-    fdata["i"] = faces
-    with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(np.ascontiguousarray(vdata, dtype="<f4").tobytes())
-        fh.write(fdata.tobytes())
-    return path
-
-
-def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (float64) and faces (int64) of a triangle mesh file; InputError if unusable."""
-    import open3d as o3d
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"mesh {path} not found")
-    m = o3d.io.read_triangle_mesh(str(path))
-    v = np.asarray(m.vertices, dtype=np.float64)
-    f = np.asarray(m.triangles, dtype=np.int64)
-    if len(v) == 0 or len(f) == 0:
-        raise InputError(f"mesh {path}: no triangles (not a triangle mesh, or unreadable)")
-    return v, f

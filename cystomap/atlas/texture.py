@@ -33,28 +33,9 @@ import numpy as np
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.errors import InputError
 from cystomap.images import sample_bilinear
+from cystomap.io.views import View
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class View:
-    """One registered frame: world→camera pose, intrinsics and the colour image file."""
-
-    name: str
-    rotation: np.ndarray  # (3, 3) world → camera
-    translation: np.ndarray  # (3,)
-    K: np.ndarray  # (3, 3) for the colour image's pixel grid
-    width: int
-    height: int
-    path: Path
-
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.rotation.T @ self.translation
-
-    def to_camera(self, points: np.ndarray) -> np.ndarray:
-        return points @ self.rotation.T + self.translation
 
 
 @dataclass(frozen=True)

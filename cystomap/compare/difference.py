@@ -35,7 +35,7 @@ import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.errors import InputError
-from cystomap.mesh import read_mesh
+from cystomap.io.ply import read_mesh
 
 log = logging.getLogger(__name__)
 

@@ -118,7 +118,8 @@ class SessionFrames:
     @classmethod
     def load(cls, sfm: Path, preprocessed: Path, atlas_dir: Path, frames: Path | None,
              rays: SurfaceRays) -> SessionFrames:
-        from cystomap.atlas.stage import AtlasConfig, load_views
+        from cystomap.atlas.config import AtlasConfig
+        from cystomap.io.views import load_views
 
         views, mask = load_views(Path(sfm), Path(preprocessed))
         try:

@@ -256,7 +256,7 @@ def grid_scale(atlas: SessionAtlas, grid_mm: float) -> float:
 def _outside_cameras(sfm_dir: Path, atlas: SessionAtlas, rel: float = 0.95) -> np.ndarray:
     """Centres (k, 3) of registered frames at or beyond the session's wall (radially from
     its barycentre): the scope entering through the bladder neck."""
-    from cystomap.mesh import load_reconstruction
+    from cystomap.io.colmap import load_reconstruction
 
     rec = load_reconstruction(sfm_dir)
     c = np.array([im.projection_center() for im in rec.images.values() if im.has_pose],

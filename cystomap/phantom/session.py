@@ -16,6 +16,7 @@ import numpy as np
 from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
+from cystomap.io.ply import write_ply
 from cystomap.outputs import atomic_dir, write_json
 from cystomap.phantom.atlas import Atlas
 from cystomap.phantom.config import PhantomConfig
@@ -150,34 +151,6 @@ def _motion_blur(cfg: PhantomConfig, camera: Camera, traj: Trajectory, centre_t:
     speed = np.linalg.norm(vel, axis=1)
     length = cfg.motion_blur_px * speed / max(float(speed.max()), 1e-9)
     return length, np.arctan2(vel[:, 1], vel[:, 0])
-
-
-def _write_ply(path: Path, vertices: np.ndarray, normals: np.ndarray, colors: np.ndarray,
-               triangles: np.ndarray) -> None:
-    vdt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
-                    ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    v = np.empty(len(vertices), vdt)
-    for i, k in enumerate(("x", "y", "z")):
-        v[k] = vertices[:, i]
-        v["n" + k] = normals[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        v[k] = colors[:, i]
-    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
-    f = np.empty(len(triangles), fdt)
-    f["n"] = 3
-    f["i"] = triangles
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment cystomap phantom wall, mm\n"
-        f"element vertex {len(v)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property float nx\nproperty float ny\nproperty float nz\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(v.tobytes())
-        fh.write(f.tobytes())
 
 
 def _write_poses(path: Path, traj: Trajectory) -> None:
@@ -351,8 +324,9 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         camera.save(tmp / "camera.json")
         nw = bladder.n_wall_verts
         vcol, _ = cube.sample(bladder.material[:nw])
-        _write_ply(tmp / "surface.ply", bladder.vertices[:nw], bladder.normals[:nw],
-                   np.clip(vcol + 0.5, 0, 255).astype(np.uint8), bladder.wall_triangles)
+        write_ply(tmp / "surface.ply", bladder.vertices[:nw], bladder.wall_triangles,
+                  normals=bladder.normals[:nw], colors=np.clip(vcol + 0.5, 0, 255).astype(np.uint8),
+                  comment="cystomap phantom wall, mm")
         albedo = atlas.albedo(cube)
         cv2.imwrite(str(tmp / "albedo.png"), cv2.cvtColor(albedo, cv2.COLOR_RGB2BGR))
         seen_img = (seen.reshape(atlas.h, atlas.w) * 255).astype(np.uint8)
