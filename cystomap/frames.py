@@ -76,6 +76,7 @@ from cystomap.frame_selection import _select, _Selection
 from cystomap.frame_tracking import _MIN_TRACK_POINTS
 from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.parallel import ordered_map
+from cystomap.settings import setting, validate
 from cystomap.video import open_video
 
 log = logging.getLogger(__name__)
@@ -90,105 +91,79 @@ class FramesConfig:
     """Settings of the ``frames`` stage (config section ``frames``)."""
 
     # Frames are scored on a grey copy downscaled to this width in pixels (never upscaled).
-    analysis_width: int = 480
+    analysis_width: int = setting(480, ">= 32")
     # Field of view scored: "auto" = detect the lit area (black endoscope borders and overlaid
     # text excluded), "full" = the whole frame.
-    fov: str = "auto"
+    fov: str = setting("auto", choices=("auto", "full"))
     # Shrink the detected FOV by this many analysis pixels (drops the rim, its vignetting and
     # the compression ringing along it).
-    fov_erode_px: int = 6
+    fov_erode_px: int = setting(6, ">= 0")
     # FOV pixels whose temporal std over the sampled frames is below static_rel times the
     # typical one (overlaid text, lens dirt) are not scored nor tracked (0 = keep them); not
     # applied when over 10% of the FOV is static (a still camera).
-    static_rel: float = 0.25
+    static_rel: float = setting(0.25, "[0, 1)")
     # Sharpness is measured on the analysis image smoothed by a Gaussian of this sigma (pixels):
     # a Laplacian-of-Gaussian band, so sensor noise and compression artefacts count less.
-    sharpness_sigma: float = 1.5
+    sharpness_sigma: float = setting(1.5, ">= 0")
     # Frames sampled evenly through the video to detect the FOV and the typical brightness.
-    probe_samples: int = 64
+    probe_samples: int = setting(64, ">= 1")
     # A pixel is saturated at or above this grey level (8-bit clipping; glints, overexposure).
-    saturation_level: int = 250
+    saturation_level: int = setting(250, "(0, 255]")
     # A pixel is dark below dark_rel times the video's typical brightness (75th percentile of
     # the sampled frames' mean FOV brightness) ...
-    dark_rel: float = 0.25
+    dark_rel: float = setting(0.25, "[0, 1)")
     # ... and always below this grey level (black whatever the video).
-    black_level: int = 12
+    black_level: int = setting(12, "[0, 255)")
     # Drop a frame as "dark" when more than this share of its FOV is dark.
-    max_dark: float = 0.6
+    max_dark: float = setting(0.6, "(0, 1]")
     # Drop a frame as "overexposed" when more than this share of its FOV is saturated.
-    max_saturated: float = 0.3
+    max_saturated: float = setting(0.3, "(0, 1]")
     # Drop a frame as "blurred" when its sharpness is below blur_rel times the local reference:
     # the blur_percentile of the sharpness of well-exposed frames of its tracking segment within
     # ±blur_window_s, all compared on the scene content they share (see the module docstring).
-    blur_rel: float = 0.4
+    blur_rel: float = setting(0.4, "[0, 1)")
     # Half-width in seconds of the window of the local sharpness reference (and how far back
     # frames are compared).
-    blur_window_s: float = 2.0
+    blur_window_s: float = setting(2.0, "> 0")
     # Percentile of sharpness in the window used as the local reference ("sharp frames here").
-    blur_percentile: float = 75.0
+    blur_percentile: float = setting(75.0, "(0, 100]")
     # Also "blurred" below this times the blur_percentile of the sharpness of its whole tracking
     # segment (long blurred stretches).
-    blur_global_rel: float = 0.2
+    blur_global_rel: float = setting(0.2, "[0, 1)")
     # A frame that could not be compared with any overlapping frame (tracking failed before and
     # after it) is "blurred" below this times the median raw sharpness of the two well-exposed
     # frames on each side (lower than blur_rel: their content differs).
-    blur_unmatched_rel: float = 0.15
+    blur_unmatched_rel: float = setting(0.15, "[0, 1)")
     # Target spacing: a good frame is "redundant" until the scene moved by this fraction of the
     # image diagonal since the last kept frame (median displacement of FOV points).
-    min_motion: float = 0.03
+    min_motion: float = setting(0.03, ">= 0")
     # Minimum distance between kept frames, in frames (1 = no constraint).
-    min_gap: int = 1
+    min_gap: int = setting(1, ">= 1")
     # Once min_motion (> 0) is reached at frame i, keep the sharpest eligible frame among
     # i .. i + lookahead whose motion since the last kept frame stays within twice min_motion
     # (0 = keep the first frame that moved enough).
-    lookahead: int = 2
+    lookahead: int = setting(2, ">= 0")
     # Keep at most this many frames (0 = no limit). If more qualify, the spacing is raised until
     # they fit; frames lost that way are marked "over_limit".
-    max_frames: int = 0
+    max_frames: int = setting(0, ">= 0")
     # A frame that cannot be tracked starts a new segment (and is kept if good); for this many
     # frames after such a break, tracking first tries the frame before it again (so a bad frame
     # or two in between does not split a segment).
-    max_track_gap: int = 5
+    max_track_gap: int = setting(5, ">= 1")
     # Corners tracked between consecutive frames.
-    track_points: int = 200
+    track_points: int = setting(200, f">= {_MIN_TRACK_POINTS}")
     # Only frames with start_s <= time < end_s are considered (end_s 0 = to the end).
-    start_s: float = 0.0
-    end_s: float = 0.0
+    start_s: float = setting(0.0, ">= 0")
+    end_s: float = setting(0.0, ">= 0")
     # Threads writing PNGs.
-    threads: int = 2
+    threads: int = setting(2, ">= 1")
 
     def __post_init__(self) -> None:
-        checks = [
-            (self.analysis_width >= 32, "analysis_width must be >= 32"),
-            (self.fov in ("auto", "full"), f"fov must be 'auto' or 'full', got {self.fov!r}"),
-            (self.fov_erode_px >= 0, "fov_erode_px must be >= 0"),
-            (0 <= self.static_rel < 1, "static_rel must be in [0, 1)"),
-            (self.sharpness_sigma >= 0, "sharpness_sigma must be >= 0"),
-            (self.probe_samples >= 1, "probe_samples must be >= 1"),
-            (0 < self.saturation_level <= 255, "saturation_level must be in (0, 255]"),
-            (0 <= self.dark_rel < 1, "dark_rel must be in [0, 1)"),
-            (0 <= self.black_level < 255, "black_level must be in [0, 255)"),
-            (0 < self.max_dark <= 1, "max_dark must be in (0, 1]"),
-            (0 < self.max_saturated <= 1, "max_saturated must be in (0, 1]"),
-            (0 <= self.blur_rel < 1, "blur_rel must be in [0, 1)"),
-            (self.blur_window_s > 0, "blur_window_s must be > 0"),
-            (0 < self.blur_percentile <= 100, "blur_percentile must be in (0, 100]"),
-            (0 <= self.blur_global_rel < 1, "blur_global_rel must be in [0, 1)"),
-            (0 <= self.blur_unmatched_rel < 1, "blur_unmatched_rel must be in [0, 1)"),
-            (self.min_motion >= 0, "min_motion must be >= 0"),
-            (self.min_gap >= 1, "min_gap must be >= 1"),
-            (self.lookahead >= 0, "lookahead must be >= 0"),
-            (self.max_frames >= 0, "max_frames must be >= 0 (0 = no limit)"),
-            (self.max_track_gap >= 1, "max_track_gap must be >= 1"),
-            (self.track_points >= _MIN_TRACK_POINTS,
-             f"track_points must be >= {_MIN_TRACK_POINTS}"),
-            (self.start_s >= 0 and self.end_s >= 0, "start_s and end_s must be >= 0"),
-            (self.end_s == 0 or self.end_s > self.start_s, "end_s must be 0 or > start_s"),
-            (self.threads >= 1, "threads must be >= 1"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise InputError(f"frames: {message}")
+        extra = {"end_s 0 or > start_s": self.end_s == 0 or self.end_s > self.start_s}
+        try:
+            validate(self, "frames", extra)
+        except ValueError as exc:
+            raise InputError(str(exc)) from exc
 
 
 def extract_frames(

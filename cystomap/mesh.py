@@ -55,6 +55,7 @@ from cystomap.geometry.trimesh import (
 from cystomap.io.colmap import find_model_dir, load_reconstruction
 from cystomap.io.ply import read_mesh, write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.settings import setting, validate
 
 log = logging.getLogger(__name__)
 
@@ -72,61 +73,42 @@ class MeshConfig:
     """Settings of the ``mesh`` stage (lengths relative to the cloud, so unit-free)."""
 
     # SfM points seen in fewer images than this are dropped (when read from the COLMAP model).
-    min_track_length: int = 2
+    min_track_length: int = setting(2, ">= 0")
     # SfM points with a larger mean reprojection error (pixels) are dropped; 0 keeps all.
-    max_reprojection_error_px: float = 4.0
+    max_reprojection_error_px: float = setting(4.0, ">= 0")
     # Statistical outlier removal: neighbours per point, and the cut in standard deviations
     # of the mean neighbour distance (0 neighbours = off).
-    outlier_neighbours: int = 16
-    outlier_std_ratio: float = 2.5
+    outlier_neighbours: int = setting(16, ">= 0")
+    outlier_std_ratio: float = setting(2.5, "> 0")
     # Points are binned (averaged) in voxels of this fraction of the median distance of the
     # points from the centre (0 = no binning).
-    voxel_fraction: float = 0.02
+    voxel_fraction: float = setting(0.02, "[0, 0.5)")
     # Direction grid of the radial fit: icosphere with 10·4^n + 2 vertices.
-    icosphere_subdivisions: int = 5
+    icosphere_subdivisions: int = setting(5, "[1, 7]")
     # Smoothness of r(direction): shapes up to about this spherical-harmonic degree pass,
     # finer detail (below ~180°/degree) and noise are smoothed away. Larger = less smoothing.
-    smooth_degree: float = 10.0
+    smooth_degree: float = setting(10.0, "> 0")
     # Where there are no points, the surface relaxes from the seen wall to the best-fitting
     # ellipsoid over about this angle (degrees, seen from the centre).
-    hole_decay_deg: float = 20.0
+    hole_decay_deg: float = setting(20.0, "> 0")
     # Robust reweighting rounds (Huber) of the radial fit, and the Huber threshold in robust
     # standard deviations (1.4826·MAD) of the residuals.
-    robust_iterations: int = 4
-    huber_k: float = 1.5
+    robust_iterations: int = setting(4, ">= 0")
+    huber_k: float = setting(1.5, "> 0")
     # Points farther than this many robust standard deviations from the fit get no weight.
     reject_k: float = 4.0
     # Refits about the volume centroid of the previous fit.
-    centre_iterations: int = 2
+    centre_iterations: int = setting(2, ">= 0")
     # Isotropic remeshing to even triangles (pymeshlab); the edge length is this fraction of
     # the mean radius (0 = keep the radial icosphere mesh).
-    remesh_edge_fraction: float = 0.03
+    remesh_edge_fraction: float = setting(0.03, "[0, 0.5)")
     # Iterations of the isotropic remeshing.
-    remesh_iterations: int = 4
+    remesh_iterations: int = setting(4, ">= 1")
     # At least this many points must remain after filtering.
-    min_points: int = 50
+    min_points: int = setting(50, ">= 10")
 
     def __post_init__(self) -> None:
-        checks = {
-            "min_track_length >= 0": self.min_track_length >= 0,
-            "max_reprojection_error_px >= 0": self.max_reprojection_error_px >= 0,
-            "outlier_neighbours >= 0": self.outlier_neighbours >= 0,
-            "outlier_std_ratio > 0": self.outlier_std_ratio > 0,
-            "0 <= voxel_fraction < 0.5": 0 <= self.voxel_fraction < 0.5,
-            "1 <= icosphere_subdivisions <= 7": 1 <= self.icosphere_subdivisions <= 7,
-            "smooth_degree > 0": self.smooth_degree > 0,
-            "hole_decay_deg > 0": self.hole_decay_deg > 0,
-            "robust_iterations >= 0": self.robust_iterations >= 0,
-            "huber_k > 0": self.huber_k > 0,
-            "reject_k > huber_k": self.reject_k > self.huber_k,
-            "centre_iterations >= 0": self.centre_iterations >= 0,
-            "0 <= remesh_edge_fraction < 0.5": 0 <= self.remesh_edge_fraction < 0.5,
-            "remesh_iterations >= 1": self.remesh_iterations >= 1,
-            "min_points >= 10": self.min_points >= 10,
-        }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"invalid mesh settings: need {', '.join(bad)}")
+        validate(self, "mesh", {"reject_k > huber_k": self.reject_k > self.huber_k})
 
 
 # --------------------------------------------------------------------------- stage entry point

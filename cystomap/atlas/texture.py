@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cystomap.atlas.config import AtlasConfig
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.errors import InputError
 from cystomap.images import sample_bilinear
@@ -38,17 +39,9 @@ from cystomap.io.views import View
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class TextureSettings:
-    """The knobs of texturing (filled from AtlasConfig)."""
-
-    min_cos_incidence: float
-    weight_cos_power: float
-    weight_distance_power: float
-    weight_sharpness_power: float
-    edge_feather_px: float
-    occlusion_scale: float
-    occlusion_tolerance: float
+#: the knobs of texturing (min_cos_incidence, weight_*_power, edge_feather_px, occlusion_*)
+#: are the atlas settings themselves
+TextureSettings = AtlasConfig
 
 
 class WallSamples:
