@@ -24,7 +24,7 @@ import scipy.sparse.linalg as spla
 from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.frame_tracking import _Look, _matched_ratio, _Tracker
-from cystomap.video import erode, fov_mask, frame_time, open_video, static_pixels, temporal_std
+from cystomap.video import erode, fov_mask, iter_frames, open_video, static_pixels, temporal_std
 
 if TYPE_CHECKING:
     from cystomap.frames import FramesConfig
@@ -150,7 +150,6 @@ class _Scores:
 
 
 def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
-    cap, info = open_video(video)
     times: list[float] = []
     sharp: list[float] = []
     sat: list[float] = []
@@ -170,62 +169,54 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
     k = 2 * max(2, round(probe.aw / 60)) + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     t0 = last_log = time.perf_counter()
-    try:
-        index = 0
-        while True:
-            ok, frame = cap.read()
-            if not ok or frame is None:
-                break
-            if (frame.shape[1], frame.shape[0]) != (probe.width, probe.height):
-                raise InputError(f"{video}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, "
-                                 f"frame 0 was {probe.width}x{probe.height}")
-            grey = probe.to_analysis(frame)
-            values = grey[probe.score_mask]
-            mean = float(values.mean())
-            saturated_px = grey >= cfg.saturation_level
-            sat.append(float(np.count_nonzero(saturated_px & probe.score_mask)) / values.size)
-            dark.append(float(np.count_nonzero(values < probe.dark_level)) / values.size)
-            valid = probe.score_mask
-            glints = None
-            if saturated_px.any():
-                glints = cv2.dilate(saturated_px.view(np.uint8), kernel) > 0
-                valid = valid & ~glints
-            usable = dark[-1] <= cfg.max_dark and sat[-1] <= cfg.max_saturated
-            look = None
-            if mean >= 1.0 and valid.any():
-                smooth = grey.astype(np.float32)
-                if cfg.sharpness_sigma > 0:
-                    smooth = cv2.GaussianBlur(smooth, (0, 0), cfg.sharpness_sigma)
-                energy = np.square(cv2.Laplacian(smooth, cv2.CV_32F))
-                sharp.append(float(np.mean(energy[valid])) * (100.0 / mean) ** 2)
-                if usable:
-                    look = _Look.of(energy, valid, grey, sharp[-1])
-            else:
-                sharp.append(0.0)
-            seg, transform = tracker.add(grey, glints, usable, look)
-            segments.append(seg)
-            transforms.append(transform)
-            recent.pop(index - reach - 1, None)
-            if seg >= 0 and look is not None:
-                for off in offsets:
-                    earlier = recent.get(index - off)
-                    if earlier is not None and earlier[0] == seg:
-                        ratio = _matched_ratio(earlier[2], look,
-                                               transform @ np.linalg.inv(earlier[1]))
-                        if ratio > 0:
-                            pairs[0].append(index - off)
-                            pairs[1].append(index)
-                            pairs[2].append(math.log(ratio))
-                recent[index] = (seg, transform, look)
-            times.append(frame_time(cap, index, info.fps))
-            index += 1
-            now = time.perf_counter()
-            if now - last_log > PROGRESS_EVERY_S:
-                last_log = now
-                log.info("frames: scored %d frames (%.0f fps), %.1f s", index,
-                         index / (now - t0), now - t0)
-    finally:
-        cap.release()
+    for index, time_s, frame in iter_frames(video):
+        if (frame.shape[1], frame.shape[0]) != (probe.width, probe.height):
+            raise InputError(f"{video}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, "
+                             f"frame 0 was {probe.width}x{probe.height}")
+        grey = probe.to_analysis(frame)
+        values = grey[probe.score_mask]
+        mean = float(values.mean())
+        saturated_px = grey >= cfg.saturation_level
+        sat.append(float(np.count_nonzero(saturated_px & probe.score_mask)) / values.size)
+        dark.append(float(np.count_nonzero(values < probe.dark_level)) / values.size)
+        valid = probe.score_mask
+        glints = None
+        if saturated_px.any():
+            glints = cv2.dilate(saturated_px.view(np.uint8), kernel) > 0
+            valid = valid & ~glints
+        usable = dark[-1] <= cfg.max_dark and sat[-1] <= cfg.max_saturated
+        look = None
+        if mean >= 1.0 and valid.any():
+            smooth = grey.astype(np.float32)
+            if cfg.sharpness_sigma > 0:
+                smooth = cv2.GaussianBlur(smooth, (0, 0), cfg.sharpness_sigma)
+            energy = np.square(cv2.Laplacian(smooth, cv2.CV_32F))
+            sharp.append(float(np.mean(energy[valid])) * (100.0 / mean) ** 2)
+            if usable:
+                look = _Look.of(energy, valid, grey, sharp[-1])
+        else:
+            sharp.append(0.0)
+        seg, transform = tracker.add(grey, glints, usable, look)
+        segments.append(seg)
+        transforms.append(transform)
+        recent.pop(index - reach - 1, None)
+        if seg >= 0 and look is not None:
+            for off in offsets:
+                earlier = recent.get(index - off)
+                if earlier is not None and earlier[0] == seg:
+                    ratio = _matched_ratio(earlier[2], look,
+                                           transform @ np.linalg.inv(earlier[1]))
+                    if ratio > 0:
+                        pairs[0].append(index - off)
+                        pairs[1].append(index)
+                        pairs[2].append(math.log(ratio))
+            recent[index] = (seg, transform, look)
+        times.append(time_s)
+        now = time.perf_counter()
+        if now - last_log > PROGRESS_EVERY_S:
+            last_log = now
+            log.info("frames: scored %d frames (%.0f fps), %.1f s", index + 1,
+                     (index + 1) / (now - t0), now - t0)
     n = len(times)
     sharpness = np.asarray(sharp)
     quality, matched = _quality(sharpness, pairs)
