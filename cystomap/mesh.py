@@ -78,7 +78,7 @@ class MeshConfig:
     max_reprojection_error_px: float = setting(4.0, ">= 0")
     # Statistical outlier removal: neighbours per point, and the cut in standard deviations
     # of the mean neighbour distance (0 neighbours = off).
-    outlier_neighbours: int = setting(16, ">= 0")
+    outlier_neighbors: int = setting(16, ">= 0")
     outlier_std_ratio: float = setting(2.5, "> 0")
     # Points are binned (averaged) in voxels of this fraction of the median distance of the
     # points from the centre (0 = no binning).
@@ -297,9 +297,9 @@ def fit_closed_surface(
 
 def remove_outliers(points: np.ndarray, cfg: MeshConfig) -> np.ndarray:
     """Statistical outlier removal (mean distance to the k nearest neighbours)."""
-    if cfg.outlier_neighbours <= 0 or len(points) <= cfg.outlier_neighbours + 1:
+    if cfg.outlier_neighbors <= 0 or len(points) <= cfg.outlier_neighbors + 1:
         return points
-    keep = statistical_inliers(points, cfg.outlier_neighbours, cfg.outlier_std_ratio)
+    keep = statistical_inliers(points, cfg.outlier_neighbors, cfg.outlier_std_ratio)
     log.info("outlier removal: %d of %d points dropped", int((~keep).sum()), len(points))
     return points[keep]
 
