@@ -313,3 +313,14 @@ def test_each_change_has_a_card_with_its_crops_and_frames(tmp_path):
     capped = build_report("p", sessions, comparisons, tmp_path / "c.html",
                           ReportConfig(image_width=200, model_vertices=3000, max_change_cards=1))
     assert capped.read_text().count("<article class='card'") == 1
+
+
+def test_sfm_self_check_in_words():
+    from cystomap.report.data import consistency_text
+
+    text, weak = consistency_text({"loop_pairs": 119, "loop_pairs_agreeing": 119,
+                                   "weakest_seam_share": 1.0, "seams_weak": [], "consistent": True})
+    assert "119 of 119 loop-closure pairs" in text and "100 %" in text and not weak
+    text, weak = consistency_text({"loop_pairs": 40, "loop_pairs_agreeing": 9,
+                                   "weakest_seam_share": 0.8, "seams_weak": [], "consistent": True})
+    assert "9 of 40" in text and weak

@@ -80,6 +80,11 @@ def test_small_session_registers_accurately(small_session, tmp_path):
     assert abs(q["scale"]["cross_check"]["relative_difference"]) < 0.1
     assert q["scale"]["factor"] * q["scale"]["model_extent"] == pytest.approx(truth.extent_mm)
     assert q["mean_reprojection_error_mm"] < 0.1
+    # self-check recorded: loop pairs were used, agree with the model, no fold or break
+    c = q["consistency"]
+    assert c["consistent"] and c["seams_broken"] == [] and c["weakest_seam_share"] > 0.5, c
+    assert c["loop_pairs"] > 20 and c["loop_agreeing_share"] > 0.8, c
+    assert q["final_adjustment"]["loops"]["loop_pairs_accepted"] > 20
 
     report = evaluate_session(truth_dir, out)
     traj = report["trajectory"]
@@ -240,3 +245,117 @@ def test_failed_run_keeps_earlier_output(tmp_path):
         run_sfm(pre, out, SfmConfig(max_image_size=0, retrieval_neighbors=0))
     assert (out / "marker").read_text() == "old"
     shutil.rmtree(out)
+
+
+def test_self_check_fails_a_folded_model():
+    """A synthetic model whose second half is turned by 30 degrees (a fold) contradicts the
+    matches linking the halves: the self-check names the place; the unfolded model passes."""
+    import pycolmap
+    from scipy.spatial.transform import Rotation
+
+    from cystomap.sfm import consistency
+
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 12, 300
+    pycolmap.set_random_seed(0)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        db = pycolmap.Database.open(str(Path(tmp) / "db.db"))
+        rec = pycolmap.synthesize_dataset(opts, db)
+        db.close()
+        names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+        geoms = consistency.read_geometries(Path(tmp) / "db.db", names)
+    chain = {p for p in geoms if p[1] - p[0] <= 3}
+    loops = set(geoms) - chain
+    fig = consistency.self_check(rec, names, geoms, chain, loops, SfmConfig())
+    assert fig["consistent"] and fig["weakest_seam_share"] == 1.0
+    assert fig["loop_agreeing_share"] == 1.0 and fig["loop_pairs"] == len(loops)
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_euler("y", 30, degrees=True)
+                                                .as_quat()), np.array([0.5, 0.0, 0.0]))
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        if names.index(image.name) >= 6:
+            frame = rec.frame(image.frame_id)
+            frame.rig_from_world = frame.rig_from_world * turn
+    with pytest.raises(StageError, match=rf"between {names[5]} and {names[6]} .* contradict"):
+        consistency.self_check(rec, names, geoms, chain, loops, SfmConfig())
+
+
+def _inject_false_loops(database: Path, names: list[str], far: list[tuple[int, int]],
+                        rng: np.random.Generator) -> dict[tuple[int, int], int]:
+    """Write matches consistent with one homography (a repeated patch) between frames that
+    see different walls; returns their number of matches."""
+    import pycolmap
+    from scipy.spatial import cKDTree
+
+    db = pycolmap.Database.open(str(database))
+    out = {}
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for i, j in far:
+            a, b = ids[names[i]], ids[names[j]]
+            k1 = np.asarray(db.read_keypoints(a))[:, :2]
+            k2 = np.asarray(db.read_keypoints(b))[:, :2]
+            angle = rng.uniform(-0.3, 0.3)
+            h = np.array([[np.cos(angle), -np.sin(angle), rng.uniform(-40, 40)],
+                          [np.sin(angle), np.cos(angle), rng.uniform(-40, 40)], [0, 0, 1]])
+            moved = k1 @ h[:2, :2].T + h[:2, 2]
+            dist, nearest = cKDTree(k2).query(moved)
+            keep = dist < 3.0  # within the RANSAC threshold (4 px) of one homography
+            m = np.c_[np.flatnonzero(keep), nearest[keep]].astype(np.uint32)
+            m = m[np.unique(m[:, 1], return_index=True)[1]]
+            geom = pycolmap.TwoViewGeometry()
+            geom.config = pycolmap.TwoViewGeometryConfiguration.PLANAR
+            geom.H = h
+            geom.inlier_matches = m
+            db.write_matches(a, b, m)
+            db.write_two_view_geometry(a, b, geom)
+            out[(i, j)] = len(m)
+    finally:
+        db.close()
+    return out
+
+
+def test_false_loop_matches_are_rejected(small_session, tmp_path, monkeypatch):
+    """Forced fold: strong, geometrically consistent matches between frames that look at
+    different walls (as repeated texture gives) are offered as loop pairs; the stage tests
+    them against the sequential model, uses none of them, and the model stays true."""
+    from cystomap.evaluate import evaluate_session, load_truth
+    from cystomap.sfm import pairs as pairs_mod
+
+    truth_dir, pre_all = small_session
+    truth = load_truth(truth_dir)
+    n = 64  # the first half of the session: one run of about half the time
+    pre = tmp_path / "pre"
+    for sub in ("enhanced", "color"):
+        (pre / sub).mkdir(parents=True)
+        for k in range(n):
+            (pre / sub / f"f{k:06d}.png").symlink_to(pre_all / sub / f"f{k:06d}.png")
+    for name in ("mask.png", "camera.json"):
+        shutil.copy(pre_all / name, pre / name)
+    axes = truth.rotations[:n, :, 2]
+    rng = np.random.default_rng(5)
+    opposite = np.argwhere(np.triu(axes @ axes.T < -0.5))
+    far = [tuple(int(v) for v in p) for p in opposite[rng.choice(len(opposite), 12, False)]]
+    real = pairs_mod.loop_pairs
+    injected: dict[tuple[int, int], int] = {}
+
+    def loops_with_false(database, names, frames, cfg):
+        injected.update(_inject_false_loops(database, names, far, rng))
+        return real(database, names, frames, cfg) | set(far)
+
+    monkeypatch.setattr(pairs_mod, "loop_pairs", loops_with_false)
+    out = tmp_path / "sfm"
+    run_sfm(pre, out, from_mapping(SfmConfig, FAST, "sfm"), extent_mm=truth.extent_mm)
+    q = json.loads((out / "quality.json").read_text())
+    assert min(injected.values()) >= 2 * SfmConfig().min_num_inliers, injected
+    loops = q["final_adjustment"]["loops"]
+    rejected = {tuple(p) for p in loops["rejected_pairs"]}
+    assert {(f"f{i:06d}.png", f"f{j:06d}.png") for i, j in far} <= rejected
+    c = q["consistency"]
+    assert c["consistent"] and c["loop_pairs"] >= len(far)
+    assert c["loop_pairs_agreeing"] <= c["loop_pairs"] - len(far)
+    assert q["registered"] == n
+    traj = evaluate_session(truth_dir, out)["trajectory"]
+    assert traj["n_matched"] == n and traj["rmse_mm"] < 0.5, traj

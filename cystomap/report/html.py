@@ -204,6 +204,8 @@ def session_section(s: SessionPage) -> str:
         ("frames registered", fraction(m.registered, m.frames_in) + " frames posed by structure from motion"),
         ("reprojection error", fmt(m.reprojection_px, 2, " px") + " mean over all observations"),
         ("3-D points", fmt(m.points)),
+        ("model self-check", (f"<span class='bad'>{esc(m.consistency)}</span>" if m.consistency_weak
+                              else esc(m.consistency or "—"))),
         ("coverage", fmt(m.coverage_percent, 1, " %") + " of the wall area seen by at least one frame"
          + (f"; median {fmt(m.views_median, 0)} frames per seen point" if m.views_median is not None else "")),
         ("frames in the atlas", fmt(m.contributing)),

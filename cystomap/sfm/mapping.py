@@ -4,6 +4,7 @@ final filter-and-adjust pass."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -107,12 +108,13 @@ def keyframes(n: int, stride: int) -> list[int]:
 def reconstruct(
     database: Path, color_dir: Path, work_dir: Path, cfg: SfmConfig, calibrated: bool,
     names: list[str], key: list[int], enhanced_dir: Path | None = None,
-    mask_path: Path | None = None,
+    mask_path: Path | None = None, close_loops: Callable[[Any, Any], dict[str, Any]] | None = None,
 ) -> MappingResult | None:
     """Map the keyframes ``key`` (indices into ``names``) incrementally, register the other
     frames to that model (pose + triangulation, no local adjustment), add full-size corner
     tracks (``densify_corners``; on the frames of ``enhanced_dir`` inside ``mask_path``), then
-    adjust globally.
+    adjust globally. ``close_loops(rec, triangulation_options)``, when given, runs after the
+    frames are registered and before densification (loop pairs held back from mapping).
     ``None`` when no model of at least ``min_model_frames`` was found."""
     import pycolmap
 
@@ -137,6 +139,7 @@ def reconstruct(
     added = 0
     if len(key) < len(names):
         added = register_rest(database, rec, names, opts)
+    loops = close_loops(rec, opts.get_triangulation()) if close_loops is not None else {}
     dense: dict[str, int] = {}
     if enhanced_dir is not None and cfg.densify_corners > 0:
         mask = None
@@ -147,6 +150,7 @@ def reconstruct(
     final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
     final["densification"] = dense
+    final["loops"] = loops
     models[0] = sorted(rec.image(i).name for i in rec.reg_image_ids())
     return MappingResult(rec, models, final)
 

@@ -1,10 +1,12 @@
 """The structure-from-motion stage: preprocessed frames -> camera poses and a sparse cloud.
 
 Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
-video-order neighbours + VLAD retrieval neighbours (loop closure); COLMAP matching and
-two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
-refined intrinsics; densification with corner tracks aligned on the full-size frames; a final
-filter-and-adjust pass; metric scale from the known extent or volume of the bladder.
+video-order neighbours; COLMAP matching and two-view verification; incremental mapping with
+bundle adjustment and fixed (calibrated) or refined intrinsics; VLAD retrieval pairs (loop
+closure), used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
+densification with corner tracks aligned on the full-size frames; a final
+filter-and-adjust pass; a self-check that fails a folded model; metric scale from the known
+extent or volume of the bladder.
 """
 
 from __future__ import annotations
@@ -16,12 +18,13 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.sfm import consistency, mapping, matching, pairs, quality, scale
 from cystomap.sfm import features as feat
-from cystomap.sfm import mapping, matching, pairs, quality, scale
 from cystomap.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
@@ -83,7 +86,8 @@ def run_sfm(
     ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing.
 
     Raises :class:`StageError` when too few frames register (the message says how many and
-    why) and :class:`InputError` when the inputs are missing or inconsistent.
+    why) or the model contradicts the matches that link its parts (a fold), and
+    :class:`InputError` when the inputs are missing or inconsistent.
     """
     cfg = cfg or SfmConfig()
     pre = Path(preprocessed_dir)
@@ -118,14 +122,24 @@ def run_sfm(
         key = mapping.keyframes(n, stride)
         if stride > 1:
             log.info("keyframes: every %d-th frame, %d of %d", stride, len(key), n)
-        with timer.step("pairs"):
-            loops = pairs.loop_pairs(database, names, key, cfg) - set(verified)
         with timer.step("matching"):
-            matching.match(database, names, loops, work, cfg)
-            pair_stats = {"sequential": n_tried, "retrieval": len(loops),
-                          "total": n_tried + len(loops), "keyframe_stride": stride}
-            n_tried += len(loops)
             matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
+        chain = set(verified)
+        loops: dict[str, Any] = {}
+
+        def close_loops(rec: Any, tri_options: Any) -> dict[str, Any]:
+            # loop (retrieval) pairs are held back from mapping and used only where they
+            # agree with the model of the sequential chain (cystomap/sfm/consistency.py)
+            with timer.step("pairs"):
+                tried = pairs.loop_pairs(database, names, key, cfg) - chain
+            with timer.step("matching"):
+                matching.match(database, names, tried, work, cfg)
+            with timer.step("loops"):
+                loops.update(consistency.close_loops(
+                    rec, database, names, chain, tried, cfg, tri_options,
+                    lambda r: mapping.adjust(r, cfg, refine, cfg.ba_global_max_iterations)))
+            return {k: v for k, v in loops.items()
+                    if k not in ("accepted", "rejected", "geometries")}
         need = max(cfg.min_registered_frames, math.ceil(cfg.min_registered_fraction * n))
         if matches.num_verified == 0:
             raise StageError(
@@ -135,7 +149,7 @@ def run_sfm(
             )
         with timer.step("mapping"):
             result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key, enhanced, mask)
+                                         names, key, enhanced, mask, close_loops)
         if result is None:
             matched = sum(1 for v in matches.verified_per_image.values() if v)
             raise StageError(
@@ -151,6 +165,16 @@ def run_sfm(
                 f"{len(result.models)} model(s) of {[len(m) for m in result.models]} frames, "
                 f"{matches.num_verified} of {n_tried} pairs verified"
             )
+        n_loops = loops.get("loop_pairs_tried", 0)
+        pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
+                      "keyframe_stride": stride}
+        n_tried += n_loops
+        matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
+        with timer.step("loops"):
+            check = consistency.self_check(
+                rec, names, loops.get("geometries") or consistency.read_geometries(
+                    database, names, chain, cfg.min_num_inliers),
+                chain, set(loops.get("accepted", ())) | set(loops.get("rejected", ())), cfg)
         mapping.as_pinhole(rec)
         with timer.step("scale"):
             xyz, _, length, _ = quality.points_arrays(rec)
@@ -171,6 +195,7 @@ def run_sfm(
                 {"final_adjustment": result.final_ba,
                  "intrinsics": "refined" if refine else "fixed",
                  "working_scale": features.scale,
+                 "consistency": check,
                  "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()},
                  "software": software_versions()},
                 cfg.min_num_inliers,
