@@ -70,9 +70,14 @@ def extract(
     work_dir: Path,
     cfg: SfmConfig,
     model: str = "PINHOLE",
+    masks_dir: Path | None = None,
 ) -> Features:
     """Detect SIFT features of ``names`` and write them, one shared camera (COLMAP ``model``:
-    PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``."""
+    PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``.
+
+    ``masks_dir`` (optional) holds a mask per frame (same name, 0 = no features: specular
+    glints, see :func:`cystomap.preprocess.glint_mask`); it is combined with the field-of-view
+    mask and handed to COLMAP as per-image masks."""
     import pycolmap
 
     scale = working_scale(camera, cfg)
@@ -105,7 +110,18 @@ def extract(
     reader.camera_model = model
     reader.camera_params = ",".join(f"{v:.10g}" for v in colmap_camera(small, model))
     mask = _working_mask(mask_path, camera, size, scale, cfg)
-    if mask is not None:
+    if masks_dir is not None:
+        frame_masks = work_dir / "masks"
+        frame_masks.mkdir(parents=True, exist_ok=True)
+
+        def combine(name: str) -> None:
+            m = frame_mask(masks_dir / name, camera, size, mask)
+            cv2.imwrite(str(frame_masks / (name + suffix + ".png")), m)  # COLMAP's naming
+
+        with ThreadPoolExecutor(cfg.num_threads) as pool:
+            list(pool.map(combine, names))
+        reader.mask_path = str(frame_masks)
+    elif mask is not None:
         mask_file = work_dir / "mask.png"
         cv2.imwrite(str(mask_file), mask)
         reader.camera_mask_path = str(mask_file)
@@ -174,6 +190,24 @@ def _check_size(img: np.ndarray, camera: Camera, path: Path) -> None:
         raise InputError(
             f"{path}: frame is {w}x{h} but camera.json says {camera.width}x{camera.height}"
         )
+
+
+def frame_mask(path: Path, camera: Camera, size: tuple[int, int],
+               fov: np.ndarray | None) -> np.ndarray:
+    """A frame's mask (0 = glint) at working ``size``, a pixel valid only where every source
+    pixel was; intersected with the working field-of-view mask ``fov``. A missing file means
+    no glints in that frame."""
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+    if m is None:
+        return fov if fov is not None else np.full(size[::-1], 255, np.uint8)
+    if m.shape != (camera.height, camera.width):
+        raise InputError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but camera.json says "
+                         f"{camera.width}x{camera.height}")
+    m = (m > 127).astype(np.uint8) * 255
+    if m.shape[::-1] != size:
+        m = cv2.resize(m, size, interpolation=cv2.INTER_AREA)
+        m = (m > 250).astype(np.uint8) * 255
+    return m if fov is None else np.minimum(m, fov)
 
 
 def _working_mask(

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -105,6 +106,7 @@ def run_sfm(
     mask = pre / "mask.png" if (pre / "mask.png").is_file() else None
     if mask is None:
         log.warning("%s: no mask.png; features are taken from the whole frame", pre)
+    masks_dir = pre / "masks" if (pre / "masks").is_dir() else None  # per frame: glints
     n = len(names)
     log.info("sfm: %d frames from %s (%s intrinsics)", n, pre,
              "calibrated" if camera.calibrated else "uncalibrated")
@@ -115,7 +117,8 @@ def run_sfm(
         refine = mapping.refine_intrinsics(cfg, camera.calibrated)
         model = "SIMPLE_PINHOLE" if refine else "PINHOLE"  # one focal length when refined
         with timer.step("features"):
-            features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model)
+            features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model,
+                                    masks_dir)
         with timer.step("matching"):
             verified, n_tried = matching.match_sequence(database, names, work, cfg)
         stride = mapping.keyframe_stride(verified, n, cfg)
@@ -147,27 +150,35 @@ def run_sfm(
                 f"had {cfg.min_num_inliers} geometrically verified matches (median "
                 f"{_median(features.num_keypoints.values()):.0f} features per frame)"
             )
+        weak = mapping.weak_frames(verified, n, cfg)
         with timer.step("mapping"):
             result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key, enhanced, mask, close_loops)
+                                         names, key, enhanced, mask, masks_dir, weak,
+                                         close_loops=close_loops)
+        n_loops = loops.get("loop_pairs_tried", 0)
+        pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
+                      "keyframe_stride": stride}
+        failed = _failed_dir(out_dir)
         if result is None:
             matched = sum(1 for v in matches.verified_per_image.values() if v)
-            raise StageError(
+            message = (
                 f"sfm: 0 of {n} frames registered: no model of at least {cfg.min_model_frames} "
                 f"frames could be started ({matches.num_verified} verified pairs, {matched} frames "
                 f"with a verified match)"
             )
+            _write_failed(failed, message, names, None, pair_stats)
+            raise StageError(f"{message}; details in {failed}")
         rec = result.reconstruction
         n_reg = rec.num_reg_images()
         if n_reg < need:
-            raise StageError(
+            message = (
                 f"sfm: only {n_reg} of {n} frames registered in the largest model (need {need}); "
                 f"{len(result.models)} model(s) of {[len(m) for m in result.models]} frames, "
                 f"{matches.num_verified} of {n_tried} pairs verified"
             )
-        n_loops = loops.get("loop_pairs_tried", 0)
-        pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
-                      "keyframe_stride": stride}
+            _write_failed(failed, message, names, result, pair_stats)
+            raise StageError(f"{message}; what did reconstruct (every model and a quality.json "
+                             f"listing their frames) is in {failed}, for inspection only")
         n_tried += n_loops
         matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
         with timer.step("loops"):
@@ -200,14 +211,63 @@ def run_sfm(
                  "software": software_versions()},
                 cfg.min_num_inliers,
             )
+            q["other_models"] = [_piece(m, names) for m in result.models[1:]]
             write_json(out / "quality.json", q)
+    if failed.exists():  # a failure of an earlier run: no longer true
+        shutil.rmtree(failed, ignore_errors=True)
     log.info("sfm: %d of %d frames registered, %d points, reprojection error %.3f px, %.1f s",
              q["registered"], n, q["points"], q["mean_reprojection_error_px"] or float("nan"),
              timings["total"])
     if q["models_found"] > 1:
-        log.warning("sfm: %d models found; wrote the largest (%d frames), others have %s frames",
-                    q["models_found"], q["model_sizes"][0], q["model_sizes"][1:])
+        log.warning("sfm: %d models found; wrote the largest (%d frames); left out (listed in "
+                    "quality.json, other_models): %s", q["models_found"], q["model_sizes"][0],
+                    "; ".join(f"{p['frames']} frames {p['first']}..{p['last']}"
+                              for p in q["other_models"]))
     return out_dir
+
+
+def _failed_dir(out_dir: Path) -> Path:
+    """Where a failed run leaves what did reconstruct: beside, not inside, the outputs."""
+    return out_dir.with_name(out_dir.name + ".failed")
+
+
+def _piece(frames: list[str], names: list[str]) -> dict[str, object]:
+    """One model's frames for quality.json: count, first/last, names and video indices."""
+    order = {name: k for k, name in enumerate(names)}
+    frames = sorted(frames, key=lambda f: order.get(f, -1))
+    indices = []
+    for f in frames:
+        m = feat.FRAME_RE.search(f)
+        indices.append(int(m.group(1)) if m else order.get(f, -1))
+    return {"frames": len(frames), "first": frames[0] if frames else None,
+            "last": frames[-1] if frames else None, "names": frames, "video_frames": indices}
+
+
+def _write_failed(failed: Path, message: str, names: list[str],
+                  result: mapping.MappingResult | None, pair_stats: dict[str, int]) -> None:
+    """Write every model of a failed run (``model_0`` = the largest, COLMAP binary, model
+    units) and a quality.json listing their frames and the frames left out, to ``failed``."""
+    try:
+        with atomic_dir(failed) as tmp:
+            pieces: list[dict[str, object]] = []
+            if result is not None:
+                recs = [result.reconstruction, *result.others]
+                for k, (rec, frames) in enumerate(zip(recs, result.models, strict=False)):
+                    (tmp / f"model_{k}").mkdir()
+                    rec.write_binary(str(tmp / f"model_{k}"))
+                    pieces.append({"model": f"model_{k}", **_piece(frames, names)})
+            seen = {f for p in pieces for f in p["names"]}  # type: ignore[attr-defined]
+            write_json(tmp / "quality.json", {
+                "failed": True, "error": message, "frames_in": len(names),
+                "models_found": len(pieces), "model_sizes": [p["frames"] for p in pieces],
+                "models": pieces, "pairs": pair_stats,
+                "unregistered": [f for f in names if f not in seen],
+                "units": "model (no metric scale applied)",
+            })
+    except OSError as exc:  # the StageError that follows matters more
+        log.warning("sfm: could not write %s: %s", failed, exc)
+        return
+    log.error("sfm: failed; what did reconstruct is in %s (not an output of the stage)", failed)
 
 
 def _median(values: object) -> float:
