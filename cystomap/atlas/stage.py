@@ -64,6 +64,7 @@ from cystomap.errors import InputError, StageError
 from cystomap.images import imwrite_rgb
 from cystomap.mesh import load_reconstruction, read_mesh, volume_centroid
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.sfm.intrinsics import frames_dir
 
 log = logging.getLogger(__name__)
 
@@ -193,6 +194,7 @@ def load_views(
     """Registered frames with their colour files, and the field-of-view mask (bool)."""
     import cv2
 
+    preprocessed_dir = frames_dir(sfm_dir, preprocessed_dir)  # undistorted if self-calibrated
     color_dir = preprocessed_dir / "color"
     if not color_dir.is_dir():
         raise InputError(f"{color_dir}: preprocessed colour frames not found")

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 INTRINSICS_MODES = ("auto", "fixed", "refine")
+#: COLMAP camera models of self-calibration; all but SIMPLE_PINHOLE estimate lens distortion.
+SELF_CALIBRATION_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE")
 
 
 @dataclass(frozen=True)
@@ -76,8 +78,15 @@ class SfmConfig:
 
     # --- mapping ---
     # camera intrinsics in bundle adjustment: fixed, refine, or auto = fixed when
-    # camera.json is calibrated, refined (focal length) when it is only a FOV guess
+    # camera.json is calibrated, self-calibrated (focal length and distortion, see
+    # self_calibration_model) when it is only a FOV guess
     intrinsics: str = "auto"
+    # COLMAP camera model of refined intrinsics (self-calibration on the frames as they are):
+    # RADIAL = one focal length and radial k1, k2; SIMPLE_RADIAL = k1 only; OPENCV = fx, fy,
+    # k1, k2, p1, p2; SIMPLE_PINHOLE = one focal length, no distortion. The principal point
+    # stays at the prior's. With distortion the model is made pinhole after mapping and the
+    # frames undistorted with the estimate (sfm/undistorted/, used by the later stages)
+    self_calibration_model: str = "RADIAL"
     # the initial pair needs this many verified matches and this triangulation angle (deg)
     init_min_num_inliers: int = 50
     init_min_tri_angle: float = 4.0
@@ -219,6 +228,9 @@ class SfmConfig:
             problems.append("final_filter_error_px must be >= 0")
         if self.intrinsics not in INTRINSICS_MODES:
             problems.append(f"intrinsics must be one of {', '.join(INTRINSICS_MODES)}")
+        if self.self_calibration_model not in SELF_CALIBRATION_MODELS:
+            problems.append("self_calibration_model must be one of "
+                            f"{', '.join(SELF_CALIBRATION_MODELS)}")
         if self.ba_global_ratio < 1.0:
             problems.append("ba_global_ratio must be >= 1")
         if min(self.ba_local_max_iterations, self.ba_global_max_iterations,

@@ -50,7 +50,8 @@ def list_frames(enhanced_dir: Path) -> list[str]:
 
 
 def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
-    """The camera's parameters in COLMAP's convention (:func:`cystomap.camera.colmap_params`)."""
+    """Parameters of COLMAP ``model`` (PINHOLE, or a self-calibrated model such as RADIAL) in
+    COLMAP's convention (:func:`cystomap.camera.colmap_params`)."""
     return colmap_params(camera, model)
 
 

@@ -32,6 +32,15 @@ def refine_intrinsics(cfg: SfmConfig, calibrated: bool) -> bool:
     return cfg.intrinsics == "refine"
 
 
+def camera_model(cfg: SfmConfig, calibrated: bool) -> str:
+    """COLMAP model of the shared camera: PINHOLE when fixed, else the self-calibration's."""
+    return cfg.self_calibration_model if refine_intrinsics(cfg, calibrated) else "PINHOLE"
+
+
+def _refine_distortion(cfg: SfmConfig, refine: bool) -> bool:
+    return refine and cfg.self_calibration_model != "SIMPLE_PINHOLE"
+
+
 def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     import pycolmap
 
@@ -45,7 +54,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.image_path = str(image_path)
     o.ba_refine_focal_length = refine
     o.ba_refine_principal_point = False
-    o.ba_refine_extra_params = False
+    o.ba_refine_extra_params = _refine_distortion(cfg, refine)
     o.ba_global_frames_ratio = cfg.ba_global_ratio
     o.ba_global_points_ratio = cfg.ba_global_ratio
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
@@ -59,7 +68,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     m.abs_pose_max_error = cfg.abs_pose_max_error_px
     m.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
     m.abs_pose_refine_focal_length = refine
-    m.abs_pose_refine_extra_params = False
+    m.abs_pose_refine_extra_params = _refine_distortion(cfg, refine)
     m.filter_max_reproj_error = cfg.max_reproj_error_px
     t = o.triangulation
     t.random_seed = cfg.seed
@@ -146,6 +155,7 @@ def reconstruct(
     names: list[str], key: list[int], enhanced_dir: Path | None = None,
     mask_path: Path | None = None, masks_dir: Path | None = None, weak: set[int] | None = None,
     close_loops: Callable[[Any, Any], dict[str, Any]] | None = None,
+    undistort: Callable[[Any], tuple[Path, Path | None]] | None = None,
 ) -> MappingResult | None:
     """Map the keyframes ``key`` (indices into ``names``) that are not ``weak`` incrementally,
     register every other frame to the largest model (the weak ones, the other keyframes and
@@ -155,6 +165,10 @@ def reconstruct(
     per-frame masks of ``masks_dir``), then adjust globally. ``close_loops(rec,
     triangulation_options)``, when given, runs after the frames are registered and before
     densification (loop pairs held back from mapping).
+    With ``undistort`` (self-calibrated distortion) the model is made pinhole before
+    densification (it returns the undistorted enhanced frames and mask; the per-frame glint
+    masks, drawn on the distorted frames, are then not used), and the final adjustment keeps
+    the intrinsics it was undistorted with.
     ``None`` when no model of at least ``min_model_frames`` was found."""
 
     from cystomap.sfm.densify import densify
@@ -184,6 +198,10 @@ def reconstruct(
     rec, others, added = attempt
     loops = (close_loops(rec, pipeline_options(cfg, refine, color_dir).get_triangulation())
              if close_loops is not None else {})
+    if undistort is not None:
+        enhanced_dir, mask_path = undistort(rec)
+        masks_dir = None
+        refine = False
     dense: dict[str, int] = {}
     if enhanced_dir is not None and cfg.densify_corners > 0:
         mask = None

@@ -24,7 +24,7 @@ from typing import Any
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.outputs import atomic_dir, software_versions, write_json
-from cystomap.sfm import consistency, mapping, matching, pairs, quality, scale
+from cystomap.sfm import consistency, intrinsics, mapping, matching, pairs, quality, scale
 from cystomap.sfm import features as feat
 from cystomap.sfm.config import SfmConfig
 
@@ -115,7 +115,11 @@ def run_sfm(
         work = Path(tmp)
         database = work / "database.db"
         refine = mapping.refine_intrinsics(cfg, camera.calibrated)
-        model = "SIMPLE_PINHOLE" if refine else "PINHOLE"  # one focal length when refined
+        model = mapping.camera_model(cfg, camera.calibrated)
+        undistort = None
+        if model in intrinsics.DISTORTION_MODELS:  # self-calibrated lens: undistorted after mapping
+            undistort = intrinsics.Undistortion(pre, work / intrinsics.UNDISTORTED, camera, names,
+                                                cfg.num_threads)
         with timer.step("features"):
             features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model,
                                     masks_dir)
@@ -154,6 +158,7 @@ def run_sfm(
         with timer.step("mapping"):
             result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
                                          names, key, enhanced, mask, masks_dir, weak,
+                                         undistort=undistort,
                                          close_loops=close_loops)
         n_loops = loops.get("loop_pairs_tried", 0)
         pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
@@ -187,6 +192,8 @@ def run_sfm(
                     database, names, chain, cfg.min_num_inliers),
                 chain, set(loops.get("accepted", ())) | set(loops.get("rejected", ())), cfg)
         mapping.as_pinhole(rec)
+        if undistort is not None:
+            color_dir = undistort.color_dir
         with timer.step("scale"):
             xyz, _, length, _ = quality.points_arrays(rec)
             est = scale.estimate_scale(
@@ -198,6 +205,11 @@ def run_sfm(
             log.info("colours: from %d of %d frames", n_read, n_reg)
         with timer.step("write"), atomic_dir(out_dir) as out:
             rec.write_binary(str(out))
+            if undistort is not None:
+                shutil.copytree(undistort.out, out / intrinsics.UNDISTORTED)
+                undistort.write(out)
+            else:
+                camera.save(out / "camera.json")
             xyz, rgb, _, _ = quality.points_arrays(rec)
             quality.write_ply(out / "points.ply", xyz, rgb)
             timings, cpu_times = timer.totals()
@@ -205,6 +217,8 @@ def run_sfm(
                 rec, names, features, matches, result.models, pair_stats, est.to_dict(), timings,
                 {"final_adjustment": result.final_ba,
                  "intrinsics": "refined" if refine else "fixed",
+                 "calibration": undistort.summary if undistort is not None
+                 else intrinsics.fixed_summary(camera),
                  "working_scale": features.scale,
                  "consistency": check,
                  "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()},
