@@ -530,7 +530,7 @@ def test_uncalibrated_distorted_scope_is_self_calibrated(tmp_path_factory, tmp_p
     assert cal["k1"] == pytest.approx(-0.2, abs=0.04), cal
     assert cal["reprojection_error_px"] < 1.0
     est = Camera.load(out / "camera.json")
-    assert est.dist[0] == pytest.approx(cal["k1"]) and not est.calibrated
+    assert est.dist[0] == pytest.approx(cal["k1"], abs=1e-4) and not est.calibrated
     # the model is pinhole and its frames are undistorted beside it
     und = frames_dir(out, pre)
     assert und == out / "undistorted"
