@@ -2,11 +2,15 @@
 
 Repeated texture (the same patch in many places of the wall) gives retrieval pairs between
 frames that do not overlap, with many matches and a consistent but false two-view geometry.
-Mapped together with the sequential chain, such pairs fold the model: part of the video is
-placed on the wrong wall. So the model is mapped from the sequential chain (video-order and
-gap-extension pairs) alone; each retrieval (loop) pair is then matched and tested against the
-relative pose the model gives its two frames, and only the loop pairs that agree are used to
-merge tracks before densification and the final adjustment.
+Mapped together with the sequential chain, such pairs can fold the model: part of the video is
+placed on the wrong wall. True loop pairs, on the other hand, are often the only link across a
+stretch the chain cannot map (the scope turning on the spot: no parallax). So the model is
+first mapped with all pairs and then checked (:func:`joint_check`, before densification): it
+is kept when no seam is broken (below) and most verified loop pairs agree with it. Otherwise it
+is mapped again from the sequential chain (video-order and gap-extension pairs) alone; each
+retrieval (loop) pair is then tested against the relative pose that model gives its two
+frames, and only the loop pairs that agree are used to merge tracks before densification and
+the final adjustment (:func:`close_loops`).
 
 A pair *agrees* with a model when the model's epipolar geometry keeps its verified matches:
 the share of its inlier matches within ``ransac_max_error_px`` (Sampson distance) of the
@@ -173,7 +177,7 @@ def agreement(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain
     return out
 
 
-def _write_pairs(database: Path, names: list[str], geoms: list[PairGeometry]) -> None:
+def write_pairs(database: Path, names: list[str], geoms: list[PairGeometry]) -> None:
     """Write the two-view geometries of ``geoms`` back into ``database``."""
     import pycolmap
 
@@ -212,12 +216,15 @@ def _merge(rec: Any, database: Path, names: list[str], frames: set[int], cfg: Sf
 
 def close_loops(rec: Any, database: Path, names: list[str], chain: set[Pair], loops: set[Pair],
                 cfg: SfmConfig, tri_options: Any, adjust: Callable[[Any], Any] | None = None,
-                max_rounds: int = 3) -> dict[str, Any]:
+                geoms: dict[Pair, PairGeometry] | None = None, max_rounds: int = 3,
+                ) -> dict[str, Any]:
     """Test the verified ``loops`` against ``rec`` (mapped from the chain pairs) and merge
     tracks along the ones that agree; after adjusting (``adjust(rec)``), the others are tested
     again against the less drifted model, for at most ``max_rounds`` rounds. Loop pairs that
-    never agree are deleted from ``database``."""
-    geoms = read_geometries(database, names, chain | loops, cfg.min_num_inliers)
+    never agree are deleted from ``database``. ``geoms``: the verified matches of the chain
+    and loop pairs when already read (the database may no longer hold the loops')."""
+    if geoms is None:
+        geoms = read_geometries(database, names, chain | loops, cfg.min_num_inliers)
     verified = {p for p in loops if p in geoms}
     delete_pairs(database, names, verified)
     accepted: set[Pair] = set()
@@ -230,7 +237,7 @@ def close_loops(rec: Any, database: Path, names: list[str], chain: set[Pair], lo
             break
         rounds += 1
         accepted |= new
-        _write_pairs(database, names, [geoms[p] for p in sorted(new)])
+        write_pairs(database, names, [geoms[p] for p in sorted(new)])
         merged += _merge(rec, database, names, {k for p in new for k in p}, cfg, tri_options)
         if adjust is not None:
             adjust(rec)
@@ -261,10 +268,12 @@ def _seams(pairs: list[Pair], agrees: list[bool], frames: list[int]) -> list[dic
     return out
 
 
-def self_check(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain: set[Pair],
-               loops: set[Pair], cfg: SfmConfig) -> dict[str, Any]:
-    """Consistency figures of the final model (for quality.json); raises StageError when the
-    chain pairs across some boundary mostly contradict the model (a fold or break)."""
+def figures(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain: set[Pair],
+            loops: set[Pair], cfg: SfmConfig
+            ) -> tuple[dict[str, Any], list[dict[str, int]], Agreement]:
+    """Consistency figures of ``rec`` (for quality.json) and the broken seams: boundaries
+    between consecutive registered frames where the chain pairs crossing it mostly (two or
+    more) contradict the model; and the agreement of every pair."""
     agr = agreement(rec, names, geoms, chain, cfg.ransac_max_error_px, cfg.seed)
     chain_p = sorted(p for p in agr.share if p in chain)
     loop_p = sorted(p for p in agr.share if p in loops)
@@ -294,8 +303,53 @@ def self_check(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chai
         "weakest_seam_share": round(min(shares), 4) if shares else None,
         "seams_broken": [_seam_names(s, names) for s in broken],
         "seams_weak": [_seam_names(s, names) for s in weak[:20]],
+        "consistent": not broken,
     }
-    fig["consistent"] = not broken
+    return fig, broken, agr
+
+
+def joint_check(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain: set[Pair],
+                loops: set[Pair], cfg: SfmConfig) -> dict[str, Any]:
+    """Whether a model mapped with the loop pairs can be kept: no broken or weak seam, and most of
+    the verified loop pairs agree with it (repeated texture gives many false loop pairs: then
+    the loops are held back and mapping starts again from the chain). Figures in the form of
+    :func:`close_loops`'s, plus ``consistent`` and, when not, ``reason``."""
+    fig, _, agr = figures(rec, names, geoms, chain, loops, cfg)
+    verified = {p for p in loops if p in geoms}
+    rejected = sorted(p for p in verified if not agr.agrees.get(p, False))
+    out: dict[str, Any] = {
+        "loop_pairs_tried": len(loops), "loop_pairs_verified": len(verified),
+        "loop_pairs_accepted": fig["loop_pairs_agreeing"],
+        "loop_pairs_rejected": fig["loop_pairs"] - fig["loop_pairs_agreeing"],
+        "chain_agreement_median": fig["chain_agreement_median"], "mapped_with_loops": True,
+        "rejected_pairs": [[names[i], names[j]] for i, j in rejected[:200]],
+        "consistent": True,
+    }
+    share = fig["loop_agreeing_share"]
+    # a model mapped with pairs that were not tested first must agree with the chain
+    # everywhere: a weak seam (two or more chain pairs across one boundary contradicting it)
+    # is enough to map again without the loops (seen: a fold by false loops that left 8 of 12
+    # chain pairs agreeing at each boundary of the folded stretch)
+    seams = fig["seams_broken"] or fig["seams_weak"]
+    if seams:
+        s = seams[0]
+        out["consistent"] = False
+        out["reason"] = (f"contradicts the frame pairs between {s['after']} and {s['before']} "
+                         f"({s['pairs'] - s['agreeing']} of {s['pairs']}; "
+                         f"{len(fig['seams_broken'])} broken, {len(fig['seams_weak'])} weak "
+                         f"place(s))")
+    elif share is not None and share < 0.5:
+        out["consistent"] = False
+        out["reason"] = (f"disagrees with {fig['loop_pairs'] - fig['loop_pairs_agreeing']} of "
+                         f"its {fig['loop_pairs']} verified loop pairs (repeated texture?)")
+    return out
+
+
+def self_check(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain: set[Pair],
+               loops: set[Pair], cfg: SfmConfig) -> dict[str, Any]:
+    """Consistency figures of the final model (for quality.json); raises StageError when the
+    chain pairs across some boundary mostly contradict the model (a fold or break)."""
+    fig, broken, _ = figures(rec, names, geoms, chain, loops, cfg)
     if broken:
         s = broken[0]
         raise StageError(
@@ -305,13 +359,15 @@ def self_check(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chai
             f"place(s) in the video); repeated texture or a false loop closure may have placed "
             f"part of the video on the wrong wall"
         )
-    if weak:
+    if fig["seams_weak"]:
+        w = fig["seams_weak"]
         log.warning("sfm self-check: %d place(s) in the video where 2 or more frame pairs "
-                    "contradict the model (first between %s and %s)", len(weak),
-                    names[weak[0]["after"]], names[weak[0]["before"]])
-    if loop_p and len(loop_ok) < 0.5 * len(loop_p):
+                    "contradict the model (first between %s and %s)", len(w),
+                    w[0]["after"], w[0]["before"])
+    if fig["loop_pairs"] and fig["loop_pairs_agreeing"] < 0.5 * fig["loop_pairs"]:
         log.warning("sfm self-check: only %d of %d verified loop pairs agree with the model "
-                    "(repeated texture? the others were not used)", len(loop_ok), len(loop_p))
+                    "(repeated texture? the others were not used)", fig["loop_pairs_agreeing"],
+                    fig["loop_pairs"])
     return fig
 
 

@@ -1,9 +1,11 @@
 """The structure-from-motion stage: preprocessed frames -> camera poses and a sparse cloud.
 
 Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
-video-order neighbours; COLMAP matching and two-view verification; incremental mapping with
-bundle adjustment and fixed (calibrated) or refined intrinsics; VLAD retrieval pairs (loop
-closure), used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
+video-order neighbours and VLAD retrieval neighbours (loop closure); COLMAP matching and
+two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
+refined intrinsics, kept when the model agrees with the sequential pairs and with most loop
+pairs; otherwise (a fold, or repeated texture) mapped again from the sequential pairs alone,
+loop pairs used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
 densification with corner tracks aligned on the full-size frames; a final
 filter-and-adjust pass; a self-check that fails a folded model; metric scale from the known
 extent or volume of the bladder.
@@ -132,21 +134,6 @@ def run_sfm(
         with timer.step("matching"):
             matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
         chain = set(verified)
-        loops: dict[str, Any] = {}
-
-        def close_loops(rec: Any, tri_options: Any) -> dict[str, Any]:
-            # loop (retrieval) pairs are held back from mapping and used only where they
-            # agree with the model of the sequential chain (cystomap/sfm/consistency.py)
-            with timer.step("pairs"):
-                tried = pairs.loop_pairs(database, names, key, cfg) - chain
-            with timer.step("matching"):
-                matching.match(database, names, tried, work, cfg)
-            with timer.step("loops"):
-                loops.update(consistency.close_loops(
-                    rec, database, names, chain, tried, cfg, tri_options,
-                    lambda r: mapping.adjust(r, cfg, refine, cfg.ba_global_max_iterations)))
-            return {k: v for k, v in loops.items()
-                    if k not in ("accepted", "rejected", "geometries")}
         need = max(cfg.min_registered_frames, math.ceil(cfg.min_registered_fraction * n))
         if matches.num_verified == 0:
             raise StageError(
@@ -154,13 +141,94 @@ def run_sfm(
                 f"had {cfg.min_num_inliers} geometrically verified matches (median "
                 f"{_median(features.num_keypoints.values()):.0f} features per frame)"
             )
+        with timer.step("pairs"):
+            tried = pairs.loop_pairs(database, names, key, cfg) - chain
+        with timer.step("matching"):
+            matching.match(database, names, tried, work, cfg)
+        geoms = consistency.read_geometries(database, names, chain | tried, cfg.min_num_inliers)
         weak = mapping.weak_frames(verified, n, cfg)
+        loops: dict[str, Any] = {}
+
+        def check_joint(rec: Any, tri_options: Any, used: set[tuple[int, int]] = tried,
+                        ) -> dict[str, Any]:
+            # mapped with (untested) loop pairs: kept only when the model agrees with the chain
+            with timer.step("loops"):
+                fig = consistency.joint_check(rec, names, geoms, chain, used, cfg)
+            loops.update(fig)
+            if not fig["consistent"]:
+                raise _HoldBack(fig["reason"])
+            return loops  # quality.json's final_adjustment.loops (completed by bridge())
+
+        def close_loops(rec: Any, tri_options: Any) -> dict[str, Any]:
+            # loop (retrieval) pairs held back from mapping and used only where they agree
+            # with the model of the sequential chain (cystomap/sfm/consistency.py)
+            with timer.step("loops"):
+                loops.update(consistency.close_loops(
+                    rec, database, names, chain, tried, cfg, tri_options,
+                    lambda r: mapping.adjust(r, cfg, refine, cfg.ba_global_max_iterations),
+                    geoms))
+            return {k: v for k, v in loops.items()
+                    if k not in ("accepted", "rejected", "geometries")}
+
+        def bridge(held: mapping.MappingResult) -> mapping.MappingResult | None:
+            # the sequential chain broke into pieces: map again with the loop pairs that agreed
+            # with the largest piece and those that link it to the others (they could not be
+            # tested), kept only when that model passes the same check as a joint one
+            rec = held.reconstruction
+            inside = {rec.image(i).name for i in rec.reg_image_ids()}
+            accepted = set(loops.get("accepted", ()))
+            links = {p for p in tried if p in geoms
+                     and (names[p[0]] in inside) != (names[p[1]] in inside)}
+            if not links:
+                return None
+            used = accepted | links
+            saved = dict(loops)
+            log.info("sfm: %d of %d frames in the largest piece; mapping again with the %d loop "
+                     "pairs that agree with it and the %d that link it to the other pieces",
+                     len(inside), n, len(accepted), len(links))
+            consistency.write_pairs(database, names, [geoms[p] for p in sorted(links)])
+            loops.clear()
+            try:
+                out = run(lambda r, t: check_joint(r, t, used), "bridged")
+            except _HoldBack as why:
+                log.warning("sfm: not bridged: the model mapped with the linking loop pairs %s; "
+                            "keeping the largest piece", why)
+                out = None
+            if out is None or out.reconstruction.num_reg_images() <= len(inside):
+                consistency.delete_pairs(database, names, links)
+                loops.clear()
+                loops.update(saved)
+                return None
+            # the loop pairs the largest piece rejected stay rejected (they were not used)
+            earlier = [p for p in saved.get("rejected_pairs", []) if p not in loops["rejected_pairs"]]
+            loops["rejected_pairs"] = sorted(loops["rejected_pairs"] + earlier)
+            loops["loop_pairs_rejected"] += len(earlier)
+            loops["loop_pairs_verified"] += len(earlier)
+            loops["bridged_pieces"] = len(held.others)
+            return out
+
+        def run(hook: Any, sub: str) -> mapping.MappingResult | None:
+            return mapping.reconstruct(database, color_dir, work / sub, cfg, camera.calibrated,
+                                       names, key, enhanced, mask, masks_dir, weak,
+                                       undistort=undistort, close_loops=hook)
+
         with timer.step("mapping"):
-            result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key, enhanced, mask, masks_dir, weak,
-                                         undistort=undistort,
-                                         close_loops=close_loops)
-        n_loops = loops.get("loop_pairs_tried", 0)
+            try:
+                result = run(check_joint, "joint")
+                mode = "joint"
+            except _HoldBack as why:
+                log.warning("sfm: the model mapped with the loop pairs %s; mapping again from "
+                            "the sequential pairs alone, loop pairs used only where they "
+                            "agree with that model", why)
+                consistency.delete_pairs(database, names, tried)
+                loops.clear()
+                result = run(close_loops, "held_back")
+                mode = "held_back"
+                if result is not None and result.others:
+                    bridged = bridge(result)
+                    if bridged is not None:
+                        result, mode = bridged, "bridged"
+        n_loops = len(tried)
         pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
                       "keyframe_stride": stride}
         failed = _failed_dir(out_dir)
@@ -187,10 +255,8 @@ def run_sfm(
         n_tried += n_loops
         matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
         with timer.step("loops"):
-            check = consistency.self_check(
-                rec, names, loops.get("geometries") or consistency.read_geometries(
-                    database, names, chain, cfg.min_num_inliers),
-                chain, set(loops.get("accepted", ())) | set(loops.get("rejected", ())), cfg)
+            check = consistency.self_check(rec, names, geoms, chain, tried, cfg)
+            check["loop_mode"] = mode
         mapping.as_pinhole(rec)
         if undistort is not None:
             color_dir = undistort.color_dir
@@ -238,6 +304,10 @@ def run_sfm(
                     "; ".join(f"{p['frames']} frames {p['first']}..{p['last']}"
                               for p in q["other_models"]))
     return out_dir
+
+
+class _HoldBack(Exception):
+    """The model mapped with the loop pairs contradicts the sequential chain."""
 
 
 def _failed_dir(out_dir: Path) -> Path:
