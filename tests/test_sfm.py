@@ -540,3 +540,22 @@ def test_uncalibrated_distorted_scope_is_self_calibrated(tmp_path_factory, tmp_p
     traj = evaluate_session(truth_dir, out)["trajectory"]
     assert traj["rmse_mm"] < 0.5, traj
     assert traj["scale_error"] < 0.03, traj
+
+
+def test_working_size_follows_the_lit_field_of_view(tmp_path):
+    """SIFT's working size is relative to the lit disc, not to the frame: a round image 760 px
+    across in a black 1920x1080 frame is worked at 640/760 of full size (not 640/1920), and
+    a frame lit edge to edge as before."""
+    from cystomap.sfm.features import lit_extent, working_scale
+
+    cam = Camera.from_fov(1920, 1080, 75.0)
+    mask = np.zeros((1080, 1920), np.uint8)
+    cv2.circle(mask, (900, 560), 379, 255, -1)
+    path = tmp_path / "mask.png"
+    cv2.imwrite(str(path), mask)
+    assert lit_extent(path, cam) == 759
+    cfg = SfmConfig()
+    assert working_scale(cam, cfg, lit_extent(path, cam)) == pytest.approx(640 / 759)
+    assert lit_extent(None, cam) == 1920
+    assert working_scale(cam, cfg, lit_extent(None, cam)) == pytest.approx(1 / 3)
+    assert working_scale(cam, from_mapping(SfmConfig, {"max_image_size": 0}, "sfm"), 759) == 1.0

@@ -18,7 +18,8 @@ class SfmConfig:
     """
 
     # --- features (SIFT on the enhanced grey frames, inside mask.png) ---
-    # longest side (px) the frames are resized to for SIFT; 0 = full size. 640 (half of
+    # longest side (px) of the lit field of view (the bounding box of mask.png; the frame
+    # without one) at the size the frames are resized to for SIFT; 0 = full size. 640 (half of
     # 1280x720) makes SIFT ~4x and matching >10x faster than full size, at about twice the
     # trajectory error on the fine-textured phantom (0.23 vs 0.10 mm); 800: 0.15 mm
     max_image_size: int = 640

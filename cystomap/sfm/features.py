@@ -55,8 +55,24 @@ def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
     return colmap_params(camera, model)
 
 
-def working_scale(camera: Camera, cfg: SfmConfig) -> float:
+def lit_extent(mask_path: Path | None, camera: Camera) -> int:
+    """Longest side (px) of the bounding box of the lit field of view (mask.png > 127); the
+    frame's longest side without a mask. A scope whose round image fills half of a black
+    frame then gets the working size of one that fills it (issue 12, item 7)."""
     longest = max(camera.width, camera.height)
+    if mask_path is None or not mask_path.is_file():
+        return longest
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None or not (mask > 127).any():
+        return longest  # reported by _working_mask
+    ys, xs = np.nonzero(mask > 127)
+    return int(max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1))
+
+
+def working_scale(camera: Camera, cfg: SfmConfig, lit_px: int | None = None) -> float:
+    """Working size / full size: ``max_image_size`` over the longest side of the lit field
+    of view (``lit_px``; the frame's without it), at most 1."""
+    longest = lit_px or max(camera.width, camera.height)
     if cfg.max_image_size <= 0 or cfg.max_image_size >= longest:
         return 1.0
     return cfg.max_image_size / longest
@@ -81,7 +97,11 @@ def extract(
     mask and handed to COLMAP as per-image masks."""
     import pycolmap
 
-    scale = working_scale(camera, cfg)
+    lit = lit_extent(mask_path, camera)
+    scale = working_scale(camera, cfg, lit)
+    if lit < max(camera.width, camera.height):
+        log.info("features: the lit field of view is %d px across (frame %dx%d); working "
+                 "scale %.3f", lit, camera.width, camera.height, scale)
     small = camera.scaled(scale) if scale != 1.0 else camera
     size = (small.width, small.height)
     image_dir = enhanced_dir
