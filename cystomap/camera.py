@@ -25,6 +25,16 @@ import numpy as np
 from cystomap.errors import InputError
 
 DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+#: Parameters of the COLMAP camera models cystomap reads and writes (all with OpenCV's
+#: distortion: SIMPLE_RADIAL's k is k1, RADIAL's k1, k2 and OPENCV's k1, k2, p1, p2 are
+#: OpenCV's coefficients of the same names).
+COLMAP_PARAMS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
 
 
 @dataclass(frozen=True)
@@ -70,6 +80,33 @@ class Camera:
             f"camera {name!r}: give either fx, fy, cx, cy (and optionally {', '.join(DIST_KEYS)})"
             " or diagonal_fov_deg"
         )
+
+    @classmethod
+    def from_colmap(
+        cls, model: str, width: int, height: int, params: Any, name: str = "camera",
+        calibrated: bool = True,
+    ) -> Camera:
+        """The camera of COLMAP ``model`` with ``params`` (COLMAP's convention: pixel corner at
+        0, so its principal point is 0.5 px off OpenCV's)."""
+        if model not in COLMAP_PARAMS:
+            raise InputError(f"camera {name!r}: COLMAP model {model} is not one of "
+                             f"{', '.join(COLMAP_PARAMS)}")
+        v = dict(zip(COLMAP_PARAMS[model], (float(p) for p in params), strict=True))
+        fx, fy = v.get("fx", v.get("f", 0.0)), v.get("fy", v.get("f", 0.0))
+        dist = (v.get("k1", v.get("k", 0.0)), v.get("k2", 0.0), v.get("p1", 0.0),
+                v.get("p2", 0.0), 0.0)
+        return cls(int(width), int(height), fx, fy, v["cx"] - COLMAP_PIXEL_OFFSET, v["cy"] - COLMAP_PIXEL_OFFSET, dist,
+                   calibrated=calibrated, name=name)
+
+    def colmap_params(self, model: str) -> tuple[float, ...]:
+        """Parameters of COLMAP ``model`` for this camera (inverse of :meth:`from_colmap`;
+        a model without some coefficient drops it: one focal length is the mean of fx, fy)."""
+        if model not in COLMAP_PARAMS:
+            raise InputError(f"COLMAP camera model {model} is not one of {', '.join(COLMAP_PARAMS)}")
+        v = {"f": 0.5 * (self.fx + self.fy), "fx": self.fx, "fy": self.fy,
+             "cx": self.cx + COLMAP_PIXEL_OFFSET, "cy": self.cy + COLMAP_PIXEL_OFFSET, "k": self.dist[0],
+             **dict(zip(DIST_KEYS, self.dist, strict=True))}
+        return tuple(float(v[n]) for n in COLMAP_PARAMS[model])
 
     @property
     def K(self) -> np.ndarray:
@@ -139,14 +176,9 @@ COLMAP_PIXEL_OFFSET = 0.5  # COLMAP coordinate of the centre of pixel 0 (OpenCV:
 
 
 def colmap_params(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
-    """PINHOLE (fx, fy, cx, cy) or SIMPLE_PINHOLE (f, cx, cy) parameters of ``camera`` in
-    COLMAP's convention (principal point + 0.5)."""
-    cx, cy = camera.cx + COLMAP_PIXEL_OFFSET, camera.cy + COLMAP_PIXEL_OFFSET
-    if model == "SIMPLE_PINHOLE":
-        return 0.5 * (camera.fx + camera.fy), cx, cy
-    if model != "PINHOLE":
-        raise ValueError(f"camera model {model!r}: only PINHOLE and SIMPLE_PINHOLE are written")
-    return camera.fx, camera.fy, cx, cy
+    """Parameters of COLMAP ``model`` (PINHOLE, SIMPLE_PINHOLE, or a model with distortion such
+    as RADIAL) of ``camera`` in COLMAP's convention (principal point + 0.5)."""
+    return camera.colmap_params(model)
 
 
 def opencv_calibration(colmap_camera: Any, width: int | None = None,

@@ -23,7 +23,10 @@ Outputs in ``out_dir`` (written atomically): ``color/<name>.png`` (undistorted +
 the atlas), ``enhanced/<name>.png`` (grey, levelled + CLAHE, for feature matching), with the same
 file names as the input frames and 0 outside the mask; ``mask.png`` (uint8, 255 = valid);
 ``camera.json`` (the undistorted pinhole camera, distortion all zero, at the output size);
-``preprocess.json`` (settings, frames processed, mask area share, timing).
+``masks/<name>.png`` (uint8 per frame, 255 = valid: ``mask.png`` minus the frame's specular
+glints and their rims, see :func:`glint_mask`; COLMAP's per-image mask convention; when
+``glint_z`` > 0); ``preprocess.json`` (settings, frames processed, mask area share, glint
+shares, timing).
 """
 
 from __future__ import annotations
@@ -103,6 +106,13 @@ class PreprocessConfig:
     clahe_tiles: int = 8
     # Worker threads (PNG decoding/encoding and OpenCV release the GIL).
     threads: int = 2
+    # Specular glints (masks/<name>.png per frame, 0 = glint or outside the FOV): a pixel is a
+    # glint core when its whiteness (smallest of B, G, R of the levelled frame) lies more than
+    # glint_z robust standard deviations (1.4826 MAD) above the frame's median and it is less
+    # coloured than the frame's median pixel; the blob grows into connected pixels above half
+    # that (its rim) and is dilated by glint_dilate times the image diagonal. 0 = no masks.
+    glint_z: float = 6.0
+    glint_dilate: float = 0.006
 
     def __post_init__(self) -> None:
         checks = [
@@ -123,6 +133,8 @@ class PreprocessConfig:
             (self.clahe_clip >= 0, "clahe_clip must be >= 0"),
             (self.clahe_tiles >= 1, "clahe_tiles must be >= 1"),
             (self.threads >= 1, "threads must be >= 1"),
+            (self.glint_z >= 0, "glint_z must be >= 0"),
+            (0 <= self.glint_dilate <= 0.1, "glint_dilate must be in [0, 0.1]"),
         ]
         for ok, message in checks:
             if not ok:
@@ -154,14 +166,17 @@ def preprocess_frames(
     with atomic_dir(out_dir) as tmp:
         (tmp / "color").mkdir()
         (tmp / "enhanced").mkdir()
+        if cfg.glint_z > 0:
+            (tmp / "masks").mkdir()
 
-        def work(path: Path) -> float:
+        def work(path: Path) -> tuple[float, float]:
             return _process(path, tmp, geo, mask, leveller, cfg)
 
         last_log = time.perf_counter()
-        levels = []
-        for level in ordered_map(work, paths, cfg.threads):
+        levels, glints = [], []
+        for level, glint in ordered_map(work, paths, cfg.threads):
             levels.append(level)
+            glints.append(glint)
             now = time.perf_counter()
             if now - last_log > PROGRESS_EVERY_S:
                 last_log = now
@@ -176,6 +191,10 @@ def preprocess_frames(
             "mask": {"mode": cfg.mask, "area_share": round(share, 4),
                      "circle": [round(v, 2) for v in circle] if circle else None},
             "mean_level": {"min": round(min(levels), 2), "max": round(max(levels), 2)},
+            "glint_share": {"mean": round(float(np.mean(glints)), 5),
+                            "max": round(float(np.max(glints)), 5),
+                            "frames_with_glints": int(np.count_nonzero(glints))}
+            if cfg.glint_z > 0 else None,
             "settings": asdict(cfg),
             "elapsed_s": round(time.perf_counter() - t0, 3),
         }
@@ -462,8 +481,9 @@ class _Leveller:
 def _process(
     path: Path, out: Path, geo: _Geometry, mask: np.ndarray, leveller: _Leveller,
     cfg: PreprocessConfig,
-) -> float:
-    """Write color/ and enhanced/ for one frame; returns its mean luminance inside the mask."""
+) -> tuple[float, float]:
+    """Write color/, enhanced/ (and masks/) for one frame; returns its mean luminance inside
+    the mask and the share of the mask taken by glints."""
     image = geo.undistort(_read(path, geo.camera))
     lum = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
     gain, target = leveller.gain(lum)
@@ -483,8 +503,57 @@ def _process(
         grid = (max(1, round(w / tile)), max(1, round(h / tile)))
         grey = cv2.createCLAHE(clipLimit=cfg.clahe_clip, tileGridSize=grid).apply(grey)
         grey[outside] = 0
-    for sub, img in (("color", color), ("enhanced", grey)):
+    outputs = [("color", color), ("enhanced", grey)]
+    share = 0.0
+    if cfg.glint_z > 0:
+        glint = glint_mask(color, mask, cfg.glint_z, cfg.glint_dilate)
+        inside = max(1, int(np.count_nonzero(mask)))
+        share = float(np.count_nonzero(glint & (mask > 0))) / inside
+        outputs.append(("masks", np.where(glint, 0, mask).astype(np.uint8)))
+    for sub, img in outputs:
         target_path = out / sub / path.name
         if not cv2.imwrite(str(target_path), img):
             raise StageError(f"{target_path}: cannot write PNG")
-    return level
+    return level, share
+
+
+def glint_mask(bgr: np.ndarray, mask: np.ndarray, z: float, dilate: float) -> np.ndarray:
+    """Specular highlights of one (levelled) BGR frame: bool image, True = glint or its rim.
+
+    Thresholds come from the frame itself, inside ``mask``: whiteness w = min(B, G, R) is
+    high only where every channel is bright (a highlight of the light's colour), chroma
+    1 - min/max low where the pixel is near-white. Cores: w above median + ``z`` robust
+    standard deviations of w and chroma below the frame's median (tissue is coloured); the
+    blob grows into connected pixels with w above median + z/2 sigma (the halo), then is
+    dilated by ``dilate`` times the image diagonal (descriptor support around the rim).
+    """
+    inside = mask > 0
+    h, w = mask.shape
+    if not inside.any():
+        return np.zeros((h, w), bool)
+    b, g, r = cv2.split(bgr)
+    lo = cv2.min(cv2.min(b, g), r)  # uint8
+    step = max(1, round(math.sqrt(np.count_nonzero(inside) / 65536)))  # stats from ~64k px
+    sub = inside[::step, ::step]
+    values = lo[::step, ::step][sub].astype(np.float32)
+    med = float(np.median(values))
+    sigma = max(1.4826 * float(np.median(np.abs(values - med))), 1.0)  # >= 1 DN (8-bit steps)
+    grow = inside & (lo > med + 0.5 * z * sigma)
+    if not (lo[grow] > med + z * sigma).any():
+        return np.zeros((h, w), bool)
+    hi = cv2.max(cv2.max(b, g), r).astype(np.float32)
+    chroma = 1.0 - lo.astype(np.float32) / np.maximum(hi, 1.0)
+    typical = float(np.median(chroma[::step, ::step][sub]))
+    core = grow & (lo > med + z * sigma) & (chroma < typical)
+    if not core.any():
+        return np.zeros((h, w), bool)
+    n, labels = cv2.connectedComponents(grow.view(np.uint8), connectivity=8)
+    hit = np.zeros(n, bool)
+    hit[np.unique(labels[core])] = True
+    hit[0] = False
+    blobs = hit[labels]
+    r = round(dilate * math.hypot(w, h))
+    if r > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        blobs = cv2.dilate(blobs.view(np.uint8), kernel) > 0
+    return blobs

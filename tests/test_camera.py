@@ -69,3 +69,21 @@ def test_colmap_round_trip_and_resize_keep_the_opencv_convention(model):
     assert colmap_to_opencv_xy(uv_colmap) == pytest.approx(cam.project(pts))
     assert colmap_to_opencv_xy(uv_colmap, 0.5, 0.5) == pytest.approx(half.project(pts))
     assert opencv_to_colmap_xy(cam.project(pts)) == pytest.approx(uv_colmap)
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"])
+def test_colmap_models_round_trip(model):
+    """COLMAP parameters (pixel corner at 0) <-> Camera (centres at integers), with the
+    coefficients each model has; pycolmap projects like Camera.project."""
+    import pycolmap
+
+    cam = Camera(640, 360, 470.0, 470.0, 319.5, 179.5, (-0.2, 0.02, 0.0, 0.0, 0.0))
+    params = cam.colmap_params(model)
+    back = Camera.from_colmap(model, 640, 360, params)
+    assert (back.cx, back.cy, back.fx) == pytest.approx((319.5, 179.5, 470.0))
+    if model in ("RADIAL", "OPENCV"):
+        assert back == cam
+    col = pycolmap.Camera.create_from_model_name(1, model, 470.0, 640, 360)
+    col.params = list(params)
+    pts = np.array([[0.3, -0.2, 1.0], [-0.5, 0.35, 1.0]])
+    np.testing.assert_allclose(col.img_from_cam(pts) - 0.5, back.project(pts), atol=1e-6)

@@ -317,3 +317,47 @@ def test_config_from_mapping() -> None:
         from_mapping(PreprocessConfig, {"mask": "octagon"}, "preprocess")
     with pytest.raises(InputError, match="scale"):
         from_mapping(PreprocessConfig, {"scale": 0}, "preprocess")
+
+
+# ------------------------------------------------------------------ specular glints
+
+
+def _mucosa(rng: np.random.Generator, brightness: float) -> np.ndarray:
+    """Reddish textured wall (BGR), smooth blobs and dark vessels, no glints."""
+    noise = cv2.GaussianBlur(rng.normal(0, 1, (H, W)).astype(np.float32), (0, 0), 3)
+    noise /= noise.std()
+    base = np.array([90.0, 110.0, 190.0]) * brightness  # B, G, R
+    img = base[None, None, :] * (1 + 0.08 * noise[..., None])
+    for _ in range(6):  # vessels
+        p = rng.integers(0, [W, H], size=(2, 2))
+        cv2.line(img, tuple(map(int, p[0])), tuple(map(int, p[1])), (40, 40, 120), 3)
+    return np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_glint_masks_cover_highlights_only(tmp_path: Path) -> None:
+    """Saturated near-white blobs with a soft halo are masked per frame with their rims; the
+    same wall without them, brighter or darker, is not masked at all."""
+    rng = np.random.default_rng(5)
+    clean = [_mucosa(rng, b) for b in (0.6, 1.0, 1.25)]
+    glinty = _mucosa(rng, 1.0)
+    truth = np.zeros((H, W), bool)
+    yy, xx = np.mgrid[0:H, 0:W]
+    for cx, cy, r in ((80, 60, 6), (200, 150, 10), (250, 60, 4), (120, 180, 8)):
+        d = np.hypot(xx - cx, yy - cy)
+        halo = np.clip(1.5 - d / (2 * r), 0, 1)[..., None]  # soft rim out to 3 r
+        glinty = np.maximum(glinty, (glinty + halo * 255).clip(0, 255)).astype(np.uint8)
+        glinty[d <= r] = 255
+        truth |= d <= 2 * r
+    frames = _frames_dir(tmp_path, [*clean, glinty])
+    cfg = PreprocessConfig(mask="full", level_sigma=0.0)
+    out = preprocess_frames(frames, tmp_path / "pre", CAMERA.without_distortion(), cfg)
+    for k in range(3):
+        assert _read(out, "masks", f"f{k:06d}.png").min() == 255, k
+    glint = _read(out, "masks", "f000003.png") == 0
+    assert glint[truth].all()  # cores and the bright part of the halos
+    assert glint.mean() < 3 * truth.mean()  # not the wall around them
+    summary = json.loads((out / "preprocess.json").read_text())
+    assert summary["glint_share"]["frames_with_glints"] == 1
+    off = preprocess_frames(frames, tmp_path / "off", CAMERA.without_distortion(),
+                            PreprocessConfig(mask="full", level_sigma=0.0, glint_z=0))
+    assert not (off / "masks").exists()

@@ -445,3 +445,14 @@ def test_templates_autoescape_and_are_packaged(repo):
     assert set(env.list_templates()) == names and {"page.html.j2", "print.css"} <= names
     data = tomllib.loads((repo / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     assert data["cystomap.report"] == ["templates/*"]
+
+
+def test_sfm_self_check_in_words():
+    from cystomap.report.data import consistency_text
+
+    text, weak = consistency_text({"loop_pairs": 119, "loop_pairs_agreeing": 119,
+                                   "weakest_seam_share": 1.0, "seams_weak": [], "consistent": True})
+    assert "119 of 119 loop-closure pairs" in text and "100 %" in text and not weak
+    text, weak = consistency_text({"loop_pairs": 40, "loop_pairs_agreeing": 9,
+                                   "weakest_seam_share": 0.8, "seams_weak": [], "consistent": True})
+    assert "9 of 40" in text and weak

@@ -2,6 +2,12 @@
 
     python -m cystomap.bench.sfm --out results/bench
 
+Sessions are named ``condition`` or ``condition:seed`` (phantom seed; default 7): the
+conditions of issue 12 (clean, glints + blur + bad frames, mosaic texture, uncalibrated scope
+with barrel distortion, 7 % deformed second session) and earlier ones (dense, lowtex);
+``--seeds 1,2,3,4,5`` runs every condition on those seeds and ``--scale 0.5`` renders at half
+size (640x360).
+
 For each phantom session (generated once into ``--work``; every video frame is decoded and
 preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap.sfm.run_sfm`
 ``--repeats`` times and pycolmap's defaults (default SIFT, exhaustive matching, incremental
@@ -16,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import shutil
 import statistics
 import sys
@@ -35,25 +42,53 @@ CAMERA = Camera(1280, 720, 939.864, 939.864, 639.5, 359.5, (-0.12, 0.02, 0.0, 0.
                 name="phantom_76")
 SESSIONS: dict[str, dict[str, Any]] = {
     "default": {},
+    "clean": {},
     "dense": {"n_frames": 572},
     "lowtex": {"texture_detail_mm": 0.4},
+    # specular glints, motion blur on every moving frame, 6 % black or defocused frames
+    "glints": {"specular": True, "motion_blur_px": 16.0, "bad_frame_fraction": 0.06},
+    "mosaic": {"texture_mode": "mosaic"},
+    # barrel distortion k1 = -0.2; the stage is told only the diagonal FOV (76 deg, true)
+    "uncal": {"lens_k1": -0.2},
+    "deformed": {"deformation": 0.07},  # session 2 of a bladder filled 7 % differently
 }
+UNCALIBRATED = {"uncal"}
+SECOND_SESSION = {"deformed"}
 STEPS = ("features", "pairs", "matching", "mapping")
 
 
-def prepare(work: Path, tag: str, overrides: dict[str, Any]) -> tuple[Path, Path]:
-    """Phantom session ``tag`` -> (truth dir, preprocessed dir); reuses earlier output."""
+def parse_session(tag: str) -> tuple[str, int]:
+    """``condition`` or ``condition:seed`` -> (condition, seed)."""
+    cond, _, seed = tag.partition(":")
+    if cond not in SESSIONS:
+        raise ValueError(f"unknown session condition {cond!r}; known: {', '.join(SESSIONS)}")
+    return cond, int(seed) if seed else 7
+
+
+def prepare(work: Path, tag: str, overrides: dict[str, Any] | None = None, scale: float = 1.0,
+            ) -> tuple[Path, Path]:
+    """Phantom session ``tag`` (``condition[:seed]``) -> (truth dir, preprocessed dir);
+    reuses earlier output. ``scale`` < 1 renders smaller frames (same field of view)."""
     import cv2
 
     from cystomap.phantom import PhantomConfig, generate_session
     from cystomap.preprocess import PreprocessConfig, preprocess_frames
 
-    root = work / tag
+    cond, seed = parse_session(tag)
+    overrides = {**SESSIONS[cond], **(overrides or {})}
+    if scale != 1.0 and "motion_blur_px" in overrides:
+        overrides["motion_blur_px"] *= scale
+    root = work / (tag.replace(":", "_") + ("" if scale == 1.0 else f"_x{scale:g}"))
     truth = root / "session"
     pre = root / "preprocessed"
+    camera = CAMERA.scaled(scale) if scale != 1.0 else CAMERA
     if not (truth / "truth.json").is_file():
         log.info("%s: rendering phantom session %s", tag, overrides or "(defaults)")
-        generate_session(truth, 1, PhantomConfig(**overrides), CAMERA)
+        generate_session(truth, 2 if cond in SECOND_SESSION else 1,
+                         PhantomConfig(**{"seed": seed, **overrides}), camera)
+    if cond in UNCALIBRATED:  # what the stage is told: the diagonal field of view only
+        fov = 2 * math.degrees(math.atan(math.hypot(camera.width, camera.height) / 2 / camera.fx))
+        camera = Camera.from_fov(camera.width, camera.height, round(fov), name="scope")
     if not (pre / "camera.json").is_file():
         frames = root / "frames"
         shutil.rmtree(frames, ignore_errors=True)
@@ -62,7 +97,7 @@ def prepare(work: Path, tag: str, overrides: dict[str, Any]) -> tuple[Path, Path
         for n, _, img in iter_frames(truth / "video.mp4"):
             cv2.imwrite(str(frames / f"f{n:06d}.png"), img)
         log.info("%s: %d frames decoded; preprocessing", tag, n)
-        preprocess_frames(frames, pre, CAMERA, PreprocessConfig())
+        preprocess_frames(frames, pre, camera, PreprocessConfig())
         shutil.rmtree(frames, ignore_errors=True)
     return truth, pre
 
@@ -135,18 +170,19 @@ COLUMNS = ("session", "method", "runs", "frames", "registered", "models", "large
 
 
 def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: int,
-          baseline_sessions: Sequence[str], earlier: Sequence[dict[str, Any]] = ()
-          ) -> list[dict[str, Any]]:
+          baseline_sessions: Sequence[str], earlier: Sequence[dict[str, Any]] = (),
+          scale: float = 1.0) -> list[dict[str, Any]]:
     from cystomap.evaluate import load_truth
 
     reuse = {r["session"]: r for r in earlier if r.get("method") == "pycolmap defaults"}
     rows = []
     for tag in sessions:
-        truth_dir, pre = prepare(work, tag, SESSIONS[tag])
+        truth_dir, pre = prepare(work, tag, scale=scale)
         extent = load_truth(truth_dir).extent_mm
         methods = [("cystomap", repeats)]
         totals: dict[str, tuple[float, float]] = {}
-        if tag in baseline_sessions and baseline_repeats > 0:
+        if ("all" in baseline_sessions or tag in baseline_sessions
+                or parse_session(tag)[0] in baseline_sessions) and baseline_repeats > 0:
             methods.append(("pycolmap defaults", baseline_repeats))
         elif tag in reuse:
             row = dict(reuse[tag], reused=True)
@@ -223,20 +259,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--work", type=Path, default=Path("/tmp/cystomap-bench-sfm"),
                    help="phantom sessions and models (reused between runs)")
     p.add_argument("--sessions", default="default,dense,lowtex",
-                   help=f"comma-separated, of {', '.join(SESSIONS)}")
+                   help=f"comma-separated condition[:seed], conditions {', '.join(SESSIONS)}")
+    p.add_argument("--seeds", default="",
+                   help="comma-separated phantom seeds: every session condition on each")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="render size relative to 1280x720 (0.5: 640x360)")
     p.add_argument("--repeats", type=int, default=3, help="runs of the stage per session")
     p.add_argument("--baseline-repeats", type=int, default=1, help="runs of pycolmap's defaults")
     p.add_argument("--baseline-sessions", default="default",
-                   help="sessions on which the defaults run too (slow)")
+                   help="sessions or conditions on which the defaults run too (slow); all")
     p.add_argument("--reuse-baseline", type=Path, default=None,
                    help="an earlier sfm.json whose pycolmap-defaults rows are reused "
                         "(for sessions where the defaults do not run now)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     sessions = [s for s in args.sessions.split(",") if s]
-    unknown = [s for s in sessions if s not in SESSIONS]
-    if unknown:
-        p.error(f"unknown session(s) {unknown}; known: {', '.join(SESSIONS)}")
+    if args.seeds:
+        sessions = [f"{s.partition(':')[0]}:{seed}" for s in sessions
+                    for seed in args.seeds.split(",") if seed]
+    try:
+        for s in sessions:
+            parse_session(s)
+    except ValueError as exc:
+        p.error(str(exc))
     import os
 
     import pycolmap
@@ -244,7 +289,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     load = " ".join(f"{v:.1f}" for v in os.getloadavg())
     earlier = json.loads(args.reuse_baseline.read_text())["rows"] if args.reuse_baseline else []
     rows = bench(args.work, sessions, args.repeats, args.baseline_repeats,
-                 [s for s in args.baseline_sessions.split(",") if s], earlier)
+                 [s for s in args.baseline_sessions.split(",") if s], earlier, args.scale)
     meta = {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "load": load,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:]}
     write_tables(args.out, rows, meta)

@@ -23,6 +23,7 @@ import numpy as np
 from cystomap.camera import colmap_to_opencv_xy, opencv_calibration
 from cystomap.errors import InputError
 from cystomap.io.colmap import load_reconstruction, world_to_camera
+from cystomap.sfm.intrinsics import frames_dir
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ def collect_observations(
     """Kept points (ids, xyz) and, per image, the observations to describe; at most
     ``max_points`` (0 = all) spread evenly over the wall (:func:`spread_subset`)."""
     rec = load_reconstruction(Path(sfm_dir))
-    enhanced = Path(preprocessed_dir) / "enhanced"
+    enhanced = frames_dir(sfm_dir, preprocessed_dir) / "enhanced"  # undistorted if self-calibrated
     if not enhanced.is_dir():
         raise InputError(f"{enhanced}: enhanced frames not found")
     n_model = len(rec.points3D)
@@ -285,7 +286,7 @@ def point_features(
     """Mean RootSIFT descriptor of every kept 3-D point of the model in ``sfm_dir``."""
     import cv2
 
-    enhanced = Path(preprocessed_dir) / "enhanced"
+    enhanced = frames_dir(sfm_dir, preprocessed_dir) / "enhanced"  # undistorted if self-calibrated
     ids, xyz, obs, n_model = collect_observations(
         sfm_dir, preprocessed_dir, keypoint_size_mm, min_track_length,
         max_reprojection_error_px, max_observations, max_points)

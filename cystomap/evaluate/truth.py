@@ -62,7 +62,9 @@ class Truth:
 
     @property
     def bad_frames(self) -> frozenset[int]:
-        return frozenset(int(f) for f in self.meta.get("bad_frames") or ())
+        # truth.json lists {"frame", "kind", "why"} per bad frame (older files: bare indices)
+        return frozenset(int(f["frame"] if isinstance(f, dict) else f)
+                         for f in self.meta.get("bad_frames") or ())
 
     @property
     def barycentre(self) -> np.ndarray:

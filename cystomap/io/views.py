@@ -45,6 +45,9 @@ def load_views(
     """Registered frames with their colour files, and the field-of-view mask (bool)."""
     import cv2
 
+    from cystomap.sfm.intrinsics import frames_dir
+
+    preprocessed_dir = frames_dir(sfm_dir, preprocessed_dir)  # undistorted if self-calibrated
     color_dir = preprocessed_dir / "color"
     if not color_dir.is_dir():
         raise InputError(f"{color_dir}: preprocessed colour frames not found")

@@ -88,6 +88,8 @@ class SessionSummary:
     metric: bool = False
     units: str = "model units"
     scale_source: str = "unknown"
+    consistency: str | None = None  # SfM self-check in words (sfm/quality.json "consistency")
+    consistency_weak: bool = False
     inputs: SessionInputs | None = None
     # atlas.json "regions": per standard region its wall area and seen share (% of its area);
     # empty for atlases written before the regions
@@ -121,6 +123,21 @@ def scale_text(scale: dict[str, Any]) -> str:
     return "unknown"
 
 
+def consistency_text(c: dict[str, Any]) -> tuple[str, bool]:
+    """The SfM self-check in words, and whether it is weak (loop pairs mostly contradict the
+    model, or frame pairs contradict it somewhere)."""
+    loops, agree = _int(c.get("loop_pairs")), _int(c.get("loop_pairs_agreeing"))
+    seam = _num(c.get("weakest_seam_share"))
+    parts = []
+    if loops:
+        parts.append(f"{agree} of {loops} loop-closure pairs agree with the model")
+    if seam is not None:
+        parts.append(f"at least {100 * seam:.0f} % of the frame pairs across any point of the "
+                     "video agree")
+    weak = bool(loops and agree is not None and agree < 0.5 * loops) or bool(c.get("seams_weak"))
+    return "; ".join(parts) or "not checked", weak or c.get("consistent") is False
+
+
 def load_session(inputs: SessionInputs) -> SessionSummary:
     s = SessionSummary(inputs.name, inputs.date, inputs=inputs)
     frames = read_json(Path(inputs.frames) / "frames.json")
@@ -137,6 +154,9 @@ def load_session(inputs: SessionInputs) -> SessionSummary:
     s.metric = bool(quality.get("metric", scale.get("metric", False)))
     s.units = "mm" if s.metric else "model units"
     s.scale_source = scale_text(scale) if scale else "unknown"
+    c = quality.get("consistency") if isinstance(quality.get("consistency"), dict) else {}
+    if c:
+        s.consistency, s.consistency_weak = consistency_text(c)
     s.coverage_percent = _num(atlas.get("coverage_percent"))
     cov = atlas.get("coverage") if isinstance(atlas.get("coverage"), dict) else {}
     s.views_median = _num(cov.get("views_median"))

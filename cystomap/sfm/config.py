@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 INTRINSICS_MODES = ("auto", "fixed", "refine")
+#: COLMAP camera models of self-calibration; all but SIMPLE_PINHOLE estimate lens distortion.
+SELF_CALIBRATION_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE")
 
 
 @dataclass(frozen=True)
@@ -16,7 +18,8 @@ class SfmConfig:
     """
 
     # --- features (SIFT on the enhanced grey frames, inside mask.png) ---
-    # longest side (px) the frames are resized to for SIFT; 0 = full size. 640 (half of
+    # longest side (px) of the lit field of view (the bounding box of mask.png; the frame
+    # without one) at the size the frames are resized to for SIFT; 0 = full size. 640 (half of
     # 1280x720) makes SIFT ~4x and matching >10x faster than full size, at about twice the
     # trajectory error on the fine-textured phantom (0.23 vs 0.10 mm); 800: 0.15 mm
     max_image_size: int = 640
@@ -76,8 +79,15 @@ class SfmConfig:
 
     # --- mapping ---
     # camera intrinsics in bundle adjustment: fixed, refine, or auto = fixed when
-    # camera.json is calibrated, refined (focal length) when it is only a FOV guess
+    # camera.json is calibrated, self-calibrated (focal length and distortion, see
+    # self_calibration_model) when it is only a FOV guess
     intrinsics: str = "auto"
+    # COLMAP camera model of refined intrinsics (self-calibration on the frames as they are):
+    # RADIAL = one focal length and radial k1, k2; SIMPLE_RADIAL = k1 only; OPENCV = fx, fy,
+    # k1, k2, p1, p2; SIMPLE_PINHOLE = one focal length, no distortion. The principal point
+    # stays at the prior's. With distortion the model is made pinhole after mapping and the
+    # frames undistorted with the estimate (sfm/undistorted/, used by the later stages)
+    self_calibration_model: str = "RADIAL"
     # the initial pair needs this many verified matches and this triangulation angle (deg)
     init_min_num_inliers: int = 50
     init_min_tri_angle: float = 4.0
@@ -101,6 +111,14 @@ class SfmConfig:
     final_ba_max_iterations: int = 100
     # smaller models (separate pieces) are reported; only the largest is written
     min_model_frames: int = 5
+    # frames whose median verified inliers with their video neighbours fall below this share
+    # of the typical (median within sequential_max_gap) are "weak" (motion blur, defocus):
+    # they are not mapped incrementally but registered to the model of the others
+    # afterwards, so a blurred stretch cannot split the model; 0 = map every frame together.
+    # Off by default: on a full-size phantom with glints, blur up to 16 px and bad frames
+    # (seed 3) 0.5 gave one model of every usable frame but 5-7 mm trajectory error, against
+    # 0.36-0.40 mm with every frame mapped together
+    weak_frame_rel: float = 0.0
 
     # --- densification at full size (after mapping, before the final adjustment) ---
     # corners detected (cv2.goodFeaturesToTrack) at full size in each registered frame are
@@ -211,6 +229,9 @@ class SfmConfig:
             problems.append("final_filter_error_px must be >= 0")
         if self.intrinsics not in INTRINSICS_MODES:
             problems.append(f"intrinsics must be one of {', '.join(INTRINSICS_MODES)}")
+        if self.self_calibration_model not in SELF_CALIBRATION_MODELS:
+            problems.append("self_calibration_model must be one of "
+                            f"{', '.join(SELF_CALIBRATION_MODELS)}")
         if self.ba_global_ratio < 1.0:
             problems.append("ba_global_ratio must be >= 1")
         if min(self.ba_local_max_iterations, self.ba_global_max_iterations,
@@ -231,6 +252,8 @@ class SfmConfig:
         if min(self.densify_min_distance_px, self.densify_max_shift_px,
                self.densify_max_reproj_error_px) <= 0 or not -1 <= self.densify_min_zncc <= 1:
             problems.append("densify distances must be > 0 and densify_min_zncc in [-1, 1]")
+        if not 0 <= self.weak_frame_rel < 1:
+            problems.append("weak_frame_rel must be in [0, 1)")
         if self.min_model_frames < 2 or self.min_registered_frames < 2:
             problems.append("min_model_frames and min_registered_frames must be >= 2")
         if not 0 <= self.min_registered_fraction <= 1:

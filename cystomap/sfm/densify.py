@@ -215,8 +215,11 @@ def _triangulate(ps: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
-            stride: int = 1) -> DensifyStats:
+            stride: int = 1, masks_dir: Path | None = None) -> DensifyStats:
     """Add full-size corner tracks to ``rec`` (see the module docstring); in place.
+
+    ``masks_dir`` (optional) holds per-frame masks (0 = specular glint): no corner is taken,
+    and no alignment accepted, where a patch would touch a glint of its frame.
 
     With keyframes every ``stride`` frames (dense video), each frame gets 1/stride of the
     corners and is aligned to every ``stride``-th following frame, so the cost and the
@@ -232,11 +235,25 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
     n_wanted = max(1, round(cfg.densify_corners / stride))
     frames = _Frames(image_dir, capacity=cfg.densify_neighbors * stride + 3)
     margin = half + 2
+    box = np.ones((2 * margin + 1,) * 2, np.uint8)
     if mask is not None:
-        valid = cv2.erode((mask > 127).astype(np.uint8) * 255, np.ones((2 * margin + 1,) * 2,
-                                                                        np.uint8))
+        valid = cv2.erode((mask > 127).astype(np.uint8) * 255, box)
     else:
         valid = None
+    glint_free: OrderedDict[str, np.ndarray | None] = OrderedDict()
+
+    def free(name: str) -> np.ndarray | None:
+        """255 where a patch centred there touches no glint of frame ``name``."""
+        if masks_dir is None:
+            return None
+        if name not in glint_free:
+            m = cv2.imread(str(masks_dir / name), cv2.IMREAD_GRAYSCALE)
+            glint_free[name] = None if m is None else cv2.erode((m > 127).astype(np.uint8) * 255,
+                                                                box)
+            if len(glint_free) > frames.capacity:
+                glint_free.popitem(last=False)
+        glint_free.move_to_end(name)
+        return glint_free[name]
     order = {i: n for n, i in enumerate(ids)}
     shared: dict[int, Counter[int]] = defaultdict(Counter)  # model points two frames share
     for point in rec.points3D.values():
@@ -259,8 +276,11 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
         if valid is None:
             valid = np.zeros((h, w), np.uint8)
             valid[margin:h - margin, margin:w - margin] = 255
+        ref_free = free(names[ref_id])
         corners = cv2.goodFeaturesToTrack(img, n_wanted, cfg.densify_quality,
-                                          cfg.densify_min_distance_px, mask=valid, blockSize=5)
+                                          cfg.densify_min_distance_px, blockSize=5,
+                                          mask=valid if ref_free is None
+                                          else np.minimum(valid, ref_free))
         if corners is None:
             continue
         cv_xy = corners.reshape(-1, 2).astype(np.float64)
@@ -296,6 +316,10 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
                                      cfg.densify_iterations)
             shift = np.linalg.norm(pos - start, axis=1)
             accept = live & (zncc >= cfg.densify_min_zncc) & (shift <= cfg.densify_max_shift_px)
+            tgt_free = free(names[tgt_id])
+            if tgt_free is not None and accept.any():
+                px = np.clip(np.rint(pos).astype(int), 0, [w - 1, h - 1])
+                accept &= tgt_free[px[:, 1], px[:, 0]] > 0
             for c, p in zip(sel[accept], opencv_to_colmap_xy(pos[accept]), strict=True):
                 found[c].append((tgt_id, p))
             n_aligned += int(accept.sum())

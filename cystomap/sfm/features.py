@@ -50,12 +50,29 @@ def list_frames(enhanced_dir: Path) -> list[str]:
 
 
 def colmap_camera(camera: Camera, model: str = "PINHOLE") -> tuple[float, ...]:
-    """The camera's parameters in COLMAP's convention (:func:`cystomap.camera.colmap_params`)."""
+    """Parameters of COLMAP ``model`` (PINHOLE, or a self-calibrated model such as RADIAL) in
+    COLMAP's convention (:func:`cystomap.camera.colmap_params`)."""
     return colmap_params(camera, model)
 
 
-def working_scale(camera: Camera, cfg: SfmConfig) -> float:
+def lit_extent(mask_path: Path | None, camera: Camera) -> int:
+    """Longest side (px) of the bounding box of the lit field of view (mask.png > 127); the
+    frame's longest side without a mask. A scope whose round image fills half of a black
+    frame then gets the working size of one that fills it (issue 12, item 7)."""
     longest = max(camera.width, camera.height)
+    if mask_path is None or not mask_path.is_file():
+        return longest
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None or not (mask > 127).any():
+        return longest  # reported by _working_mask
+    ys, xs = np.nonzero(mask > 127)
+    return int(max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1))
+
+
+def working_scale(camera: Camera, cfg: SfmConfig, lit_px: int | None = None) -> float:
+    """Working size / full size: ``max_image_size`` over the longest side of the lit field
+    of view (``lit_px``; the frame's without it), at most 1."""
+    longest = lit_px or max(camera.width, camera.height)
     if cfg.max_image_size <= 0 or cfg.max_image_size >= longest:
         return 1.0
     return cfg.max_image_size / longest
@@ -70,12 +87,21 @@ def extract(
     work_dir: Path,
     cfg: SfmConfig,
     model: str = "PINHOLE",
+    masks_dir: Path | None = None,
 ) -> Features:
     """Detect SIFT features of ``names`` and write them, one shared camera (COLMAP ``model``:
-    PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``."""
+    PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``.
+
+    ``masks_dir`` (optional) holds a mask per frame (same name, 0 = no features: specular
+    glints, see :func:`cystomap.preprocess.glint_mask`); it is combined with the field-of-view
+    mask and handed to COLMAP as per-image masks."""
     import pycolmap
 
-    scale = working_scale(camera, cfg)
+    lit = lit_extent(mask_path, camera)
+    scale = working_scale(camera, cfg, lit)
+    if lit < max(camera.width, camera.height):
+        log.info("features: the lit field of view is %d px across (frame %dx%d); working "
+                 "scale %.3f", lit, camera.width, camera.height, scale)
     small = camera.scaled(scale) if scale != 1.0 else camera
     size = (small.width, small.height)
     image_dir = enhanced_dir
@@ -105,7 +131,18 @@ def extract(
     reader.camera_model = model
     reader.camera_params = ",".join(f"{v:.10g}" for v in colmap_camera(small, model))
     mask = _working_mask(mask_path, camera, size, scale, cfg)
-    if mask is not None:
+    if masks_dir is not None:
+        frame_masks = work_dir / "masks"
+        frame_masks.mkdir(parents=True, exist_ok=True)
+
+        def combine(name: str) -> None:
+            m = frame_mask(masks_dir / name, camera, size, mask)
+            cv2.imwrite(str(frame_masks / (name + suffix + ".png")), m)  # COLMAP's naming
+
+        with ThreadPoolExecutor(cfg.num_threads) as pool:
+            list(pool.map(combine, names))
+        reader.mask_path = str(frame_masks)
+    elif mask is not None:
         mask_file = work_dir / "mask.png"
         cv2.imwrite(str(mask_file), mask)
         reader.camera_mask_path = str(mask_file)
@@ -174,6 +211,24 @@ def _check_size(img: np.ndarray, camera: Camera, path: Path) -> None:
         raise InputError(
             f"{path}: frame is {w}x{h} but camera.json says {camera.width}x{camera.height}"
         )
+
+
+def frame_mask(path: Path, camera: Camera, size: tuple[int, int],
+               fov: np.ndarray | None) -> np.ndarray:
+    """A frame's mask (0 = glint) at working ``size``, a pixel valid only where every source
+    pixel was; intersected with the working field-of-view mask ``fov``. A missing file means
+    no glints in that frame."""
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+    if m is None:
+        return fov if fov is not None else np.full(size[::-1], 255, np.uint8)
+    if m.shape != (camera.height, camera.width):
+        raise InputError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but camera.json says "
+                         f"{camera.width}x{camera.height}")
+    m = (m > 127).astype(np.uint8) * 255
+    if m.shape[::-1] != size:
+        m = cv2.resize(m, size, interpolation=cv2.INTER_AREA)
+        m = (m > 250).astype(np.uint8) * 255
+    return m if fov is None else np.minimum(m, fov)
 
 
 def _working_mask(

@@ -4,7 +4,8 @@ final filter-and-adjust pass."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +23,22 @@ class MappingResult:
     reconstruction: Any  # pycolmap.Reconstruction
     models: list[list[str]]  # registered names per model, largest first
     final_ba: dict[str, Any]
+    others: list[Any] = field(default_factory=list)  # the other models (pieces), models[1:]
 
 
 def refine_intrinsics(cfg: SfmConfig, calibrated: bool) -> bool:
     if cfg.intrinsics == "auto":
         return not calibrated
     return cfg.intrinsics == "refine"
+
+
+def camera_model(cfg: SfmConfig, calibrated: bool) -> str:
+    """COLMAP model of the shared camera: PINHOLE when fixed, else the self-calibration's."""
+    return cfg.self_calibration_model if refine_intrinsics(cfg, calibrated) else "PINHOLE"
+
+
+def _refine_distortion(cfg: SfmConfig, refine: bool) -> bool:
+    return refine and cfg.self_calibration_model != "SIMPLE_PINHOLE"
 
 
 def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
@@ -43,7 +54,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.image_path = str(image_path)
     o.ba_refine_focal_length = refine
     o.ba_refine_principal_point = False
-    o.ba_refine_extra_params = False
+    o.ba_refine_extra_params = _refine_distortion(cfg, refine)
     o.ba_global_frames_ratio = cfg.ba_global_ratio
     o.ba_global_points_ratio = cfg.ba_global_ratio
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
@@ -57,7 +68,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     m.abs_pose_max_error = cfg.abs_pose_max_error_px
     m.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
     m.abs_pose_refine_focal_length = refine
-    m.abs_pose_refine_extra_params = False
+    m.abs_pose_refine_extra_params = _refine_distortion(cfg, refine)
     m.filter_max_reproj_error = cfg.max_reproj_error_px
     t = o.triangulation
     t.random_seed = cfg.seed
@@ -97,6 +108,41 @@ def keyframe_stride(verified: dict[tuple[int, int], int], n: int, cfg: SfmConfig
     return stride
 
 
+def weak_frames(verified: dict[tuple[int, int], int], n: int, cfg: SfmConfig) -> set[int]:
+    """Frames whose link to their video neighbours is weak (motion blur, defocus, glare): the
+    median verified inliers of a frame's pairs within ``sequential_overlap`` frames is below
+    ``weak_frame_rel`` times the median of that figure over the frames within
+    ``sequential_max_gap`` of it, in runs that a strong pair (``extend_min_inliers``) of
+    other frames spans. Mapped last, so a blurred stretch cannot split the model."""
+    import numpy as np
+
+    if cfg.weak_frame_rel <= 0 or n < 3:
+        return set()
+    links: list[list[int]] = [[] for _ in range(n)]
+    for (i, j), inliers in verified.items():
+        if abs(i - j) <= cfg.sequential_overlap:
+            links[i].append(inliers)
+            links[j].append(inliers)
+    strength = np.array([float(np.median(v)) if v else 0.0 for v in links])
+    w = cfg.sequential_max_gap
+    typical = np.array([np.median(strength[max(0, i - w): i + w + 1]) for i in range(n)])
+    weak = [int(i) for i in np.nonzero(strength < cfg.weak_frame_rel * typical)[0]]
+    # a run of consecutive weak frames is left out of the mapping only when a strong pair of
+    # other frames spans it: otherwise the weak frames are the chain's only link, and
+    # mapping without them would split the model there
+    runs: list[list[int]] = []
+    for i in weak:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    weak_set = set(weak)
+    strong = [(i, j) for (i, j), v in verified.items()
+              if v >= cfg.extend_min_inliers and i not in weak_set and j not in weak_set]
+    return {i for run in runs if any(i < run[0] and j > run[-1] for i, j in strong)
+            for i in run}
+
+
 def keyframes(n: int, stride: int) -> list[int]:
     frames = list(range(0, n, stride))
     if frames[-1] != n - 1:
@@ -107,53 +153,121 @@ def keyframes(n: int, stride: int) -> list[int]:
 def reconstruct(
     database: Path, color_dir: Path, work_dir: Path, cfg: SfmConfig, calibrated: bool,
     names: list[str], key: list[int], enhanced_dir: Path | None = None,
-    mask_path: Path | None = None,
+    mask_path: Path | None = None, masks_dir: Path | None = None, weak: set[int] | None = None,
+    close_loops: Callable[[Any, Any], dict[str, Any]] | None = None,
+    undistort: Callable[[Any], tuple[Path, Path | None]] | None = None,
 ) -> MappingResult | None:
-    """Map the keyframes ``key`` (indices into ``names``) incrementally, register the other
-    frames to that model (pose + triangulation, no local adjustment), add full-size corner
-    tracks (``densify_corners``; on the frames of ``enhanced_dir`` inside ``mask_path``), then
-    adjust globally.
+    """Map the keyframes ``key`` (indices into ``names``) that are not ``weak`` incrementally,
+    register every other frame to the largest model (the weak ones, the other keyframes and
+    the frames of other models, nearest in video order to the model first; pose +
+    triangulation, then one global adjustment when that added many), add full-size corner
+    tracks (``densify_corners``; on the frames of ``enhanced_dir`` inside ``mask_path`` and the
+    per-frame masks of ``masks_dir``), then adjust globally. ``close_loops(rec,
+    triangulation_options)``, when given, runs after the frames are registered and before
+    densification (loop pairs held back from mapping).
+    With ``undistort`` (self-calibrated distortion) the model is made pinhole before
+    densification (it returns the undistorted enhanced frames and mask; the per-frame glint
+    masks, drawn on the distorted frames, are then not used), and the final adjustment keeps
+    the intrinsics it was undistorted with.
     ``None`` when no model of at least ``min_model_frames`` was found."""
-    import pycolmap
 
     from cystomap.sfm.densify import densify
 
-    pycolmap.set_random_seed(cfg.seed)
     refine = refine_intrinsics(cfg, calibrated)
-    opts = pipeline_options(cfg, refine, color_dir)
-    if len(key) < len(names):
-        opts.image_names = [names[i] for i in key]
-    out = work_dir / "models"
-    out.mkdir(parents=True, exist_ok=True)
-    recs = pycolmap.incremental_mapping(database, color_dir, out, options=opts)
-    recs = {k: r for k, r in recs.items() if r.num_reg_images() >= 2}
-    if not recs:
+    weak = weak or set()
+    mapped = [i for i in key if i not in weak]
+    if len(mapped) < max(cfg.min_model_frames, len(key) // 2):
+        mapped = key  # mostly weak: nothing better to start from
+    if len(mapped) < len(key):
+        log.info("mapping: %d weak frame(s) (blur) are registered after the others: %s",
+                 len(key) - len(mapped), [names[i] for i in key if i not in mapped][:20])
+    attempt = _map_and_extend(database, color_dir, work_dir / "models", cfg, refine, names,
+                              mapped, key)
+    if len(mapped) < len(key) and (attempt is None or attempt[1]):
+        # sharp frames first did not give one model: the weak frames may be the only links
+        # (blur everywhere); map them together with the others too, keep the larger model
+        log.info("mapping: again with the weak frames mapped together with the others")
+        plain = _map_and_extend(database, color_dir, work_dir / "models_all", cfg, refine,
+                                names, key, key)
+        if plain is not None and (attempt is None
+                                  or plain[0].num_reg_images() > attempt[0].num_reg_images()):
+            attempt = plain
+            weak = set()
+    if attempt is None:
         return None
-    ordered = sorted(recs.values(), key=lambda r: -r.num_reg_images())
-    models = [sorted(r.image(i).name for i in r.reg_image_ids()) for r in ordered]
-    log.info("mapping: %d model(s) with %s of %d keyframes", len(models),
-             [len(m) for m in models], len(key))
-    rec = ordered[0]
-    added = 0
-    if len(key) < len(names):
-        added = register_rest(database, rec, names, opts)
+    rec, others, added = attempt
+    loops = (close_loops(rec, pipeline_options(cfg, refine, color_dir).get_triangulation())
+             if close_loops is not None else {})
+    if undistort is not None:
+        enhanced_dir, mask_path = undistort(rec)
+        masks_dir = None
+        refine = False
     dense: dict[str, int] = {}
     if enhanced_dir is not None and cfg.densify_corners > 0:
         mask = None
         if mask_path is not None and mask_path.is_file():
             mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
         stride = key[1] - key[0] if len(key) > 1 else 1
-        dense = densify(rec, enhanced_dir, mask, cfg, stride).to_dict()
+        dense = densify(rec, enhanced_dir, mask, cfg, stride, masks_dir).to_dict()
     final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
+    final["weak_frames"] = sorted(names[i] for i in weak)
     final["densification"] = dense
-    models[0] = sorted(rec.image(i).name for i in rec.reg_image_ids())
-    return MappingResult(rec, models, final)
+    final["loops"] = loops
+    main = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    # the other models without the frames the largest took over
+    rest = [[n for n in sorted(r.image(i).name for i in r.reg_image_ids()) if n not in main]
+            for r in others]
+    keep = sorted((k for k, m in enumerate(rest) if len(m) >= 2),
+                  key=lambda k: (-len(rest[k]), rest[k]))
+    return MappingResult(rec, [main, *(rest[k] for k in keep)], final, [others[k] for k in keep])
 
 
-def register_rest(database: Path, rec: Any, names: list[str], opts: Any) -> int:
-    """Register the frames missing from ``rec`` by absolute pose (in video order, two
-    passes), triangulate their matches, merge tracks; returns how many were added."""
+def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, refine: bool,
+                    names: list[str], mapped: list[int], key: list[int]
+                    ) -> tuple[Any, list[Any], int] | None:
+    """Incremental mapping of ``mapped`` (indices into ``names``), then every other frame
+    registered to the largest model (keyframes ``key`` among them with a local bundle
+    adjustment each, as the mapper would: they extend the model rather than fill it in):
+    (largest model, the other models it did not absorb, frames added); None when no model
+    was started."""
+    import pycolmap
+
+    pycolmap.set_random_seed(cfg.seed)
+    opts = pipeline_options(cfg, refine, color_dir)
+    if len(mapped) < len(names):
+        opts.image_names = [names[i] for i in mapped]
+    out.mkdir(parents=True, exist_ok=True)
+    recs = pycolmap.incremental_mapping(database, color_dir, out, options=opts)
+    recs = {k: r for k, r in recs.items() if r.num_reg_images() >= 2}
+    if not recs:
+        return None
+    ordered = sorted(recs.values(), key=lambda r: -r.num_reg_images())
+    log.info("mapping: %d model(s) with %s of %d mapped frames", len(ordered),
+             [r.num_reg_images() for r in ordered], len(mapped))
+    rec = ordered[0]
+    added = 0
+    before = rec.num_reg_images()
+    if before < len(names):
+        added = register_rest(database, rec, names, opts, {names[i] for i in key})
+        if added > cfg.ba_global_ratio * before - before:  # as the mapper would have
+            adjust(rec, cfg, refine, cfg.ba_global_max_iterations)
+    registered = {rec.image(i).name for i in rec.reg_image_ids()}
+    others = [r for r in ordered[1:]
+              if not {r.image(i).name for i in r.reg_image_ids()} <= registered]
+    if len(others) < len(ordered) - 1:
+        log.info("mapping: %d other model(s) joined the largest through their frames",
+                 len(ordered) - 1 - len(others))
+    return rec, others, added
+
+
+def register_rest(database: Path, rec: Any, names: list[str], opts: Any,
+                  refine_names: set[str] | None = None) -> int:
+    """Register the frames missing from ``rec`` by absolute pose, triangulate their matches,
+    merge tracks; returns how many were added. Passes until one adds nothing; in each, the
+    frames nearest in video order to a registered one come first (a chain grows both ways
+    from the model, across a stretch it could not map). Frames of ``refine_names`` get a
+    local bundle adjustment after registration."""
     import pycolmap
 
     cache_opts = pycolmap.DatabaseCacheOptions()
@@ -168,20 +282,38 @@ def register_rest(database: Path, rec: Any, names: list[str], opts: Any) -> int:
     mapper.begin_reconstruction(rec)
     mopts = opts.get_mapper()
     tri = opts.get_triangulation()
+    local_ba = opts.get_local_bundle_adjustment()
+    refine = refine_names or set()
+    import numpy as np
+
     registered = set(rec.reg_image_ids())
-    pending = [ids[n] for n in names if n in ids and ids[n] not in registered]
+    index = {ids[n]: k for k, n in enumerate(names) if n in ids}
+    # frames without a verified pair are not in the cache (nothing to register them with)
+    pending = [ids[n] for n in names
+               if n in ids and ids[n] not in registered and cache.exists_image(ids[n])]
     added = 0
-    for _ in range(3):
+    while pending:
+        done = np.array(sorted(index[i] for i in registered))
+        if not len(done):
+            break
+        pos = np.array([index[i] for i in pending])
+        near = np.abs(pos[:, None] - done[None, :]).min(axis=1)
         left = []
-        for image_id in pending:
+        for k in np.lexsort((pos, near)):
+            image_id = pending[int(k)]
             if mapper.register_next_image(mopts, image_id):
                 mapper.triangulate_image(tri, image_id)
+                if names[index[image_id]] in refine:
+                    mapper.iterative_local_refinement(
+                        opts.ba_local_max_refinements, opts.ba_local_max_refinement_change,
+                        mopts, local_ba, tri, image_id)
+                registered.add(image_id)
                 added += 1
             else:
                 left.append(image_id)
-        if not left or len(left) == len(pending):
+        if len(left) == len(pending):
             break
-        pending = left
+        pending = sorted(left, key=index.__getitem__)
     mapper.complete_and_merge_tracks(tri)
     mapper.end_reconstruction(False)
     log.info("mapping: %d more frames registered to the keyframe model", added)

@@ -1,10 +1,14 @@
 """The structure-from-motion stage: preprocessed frames -> camera poses and a sparse cloud.
 
 Steps (each timed in quality.json): SIFT features at reduced size inside the mask; pairs =
-video-order neighbours + VLAD retrieval neighbours (loop closure); COLMAP matching and
+video-order neighbours and VLAD retrieval neighbours (loop closure); COLMAP matching and
 two-view verification; incremental mapping with bundle adjustment and fixed (calibrated) or
-refined intrinsics; densification with corner tracks aligned on the full-size frames; a final
-filter-and-adjust pass; metric scale from the known extent or volume of the bladder.
+refined intrinsics, kept when the model agrees with the sequential pairs and with most loop
+pairs; otherwise (a fold, or repeated texture) mapped again from the sequential pairs alone,
+loop pairs used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
+densification with corner tracks aligned on the full-size frames; a final
+filter-and-adjust pass; a self-check that fails a folded model; metric scale from the known
+extent or volume of the bladder.
 """
 
 from __future__ import annotations
@@ -12,16 +16,18 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.sfm import consistency, intrinsics, mapping, matching, pairs, quality, scale
 from cystomap.sfm import features as feat
-from cystomap.sfm import mapping, matching, pairs, quality, scale
 from cystomap.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
@@ -83,7 +89,8 @@ def run_sfm(
     ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing.
 
     Raises :class:`StageError` when too few frames register (the message says how many and
-    why) and :class:`InputError` when the inputs are missing or inconsistent.
+    why) or the model contradicts the matches that link its parts (a fold), and
+    :class:`InputError` when the inputs are missing or inconsistent.
     """
     cfg = cfg or SfmConfig()
     pre = Path(preprocessed_dir)
@@ -101,6 +108,7 @@ def run_sfm(
     mask = pre / "mask.png" if (pre / "mask.png").is_file() else None
     if mask is None:
         log.warning("%s: no mask.png; features are taken from the whole frame", pre)
+    masks_dir = pre / "masks" if (pre / "masks").is_dir() else None  # per frame: glints
     n = len(names)
     log.info("sfm: %d frames from %s (%s intrinsics)", n, pre,
              "calibrated" if camera.calibrated else "uncalibrated")
@@ -109,23 +117,23 @@ def run_sfm(
         work = Path(tmp)
         database = work / "database.db"
         refine = mapping.refine_intrinsics(cfg, camera.calibrated)
-        model = "SIMPLE_PINHOLE" if refine else "PINHOLE"  # one focal length when refined
+        model = mapping.camera_model(cfg, camera.calibrated)
+        undistort = None
+        if model in intrinsics.DISTORTION_MODELS:  # self-calibrated lens: undistorted after mapping
+            undistort = intrinsics.Undistortion(pre, work / intrinsics.UNDISTORTED, camera, names,
+                                                cfg.num_threads)
         with timer.step("features"):
-            features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model)
+            features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model,
+                                    masks_dir)
         with timer.step("matching"):
             verified, n_tried = matching.match_sequence(database, names, work, cfg)
         stride = mapping.keyframe_stride(verified, n, cfg)
         key = mapping.keyframes(n, stride)
         if stride > 1:
             log.info("keyframes: every %d-th frame, %d of %d", stride, len(key), n)
-        with timer.step("pairs"):
-            loops = pairs.loop_pairs(database, names, key, cfg) - set(verified)
         with timer.step("matching"):
-            matching.match(database, names, loops, work, cfg)
-            pair_stats = {"sequential": n_tried, "retrieval": len(loops),
-                          "total": n_tried + len(loops), "keyframe_stride": stride}
-            n_tried += len(loops)
             matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
+        chain = set(verified)
         need = max(cfg.min_registered_frames, math.ceil(cfg.min_registered_fraction * n))
         if matches.num_verified == 0:
             raise StageError(
@@ -133,25 +141,125 @@ def run_sfm(
                 f"had {cfg.min_num_inliers} geometrically verified matches (median "
                 f"{_median(features.num_keypoints.values()):.0f} features per frame)"
             )
+        with timer.step("pairs"):
+            tried = pairs.loop_pairs(database, names, key, cfg) - chain
+        with timer.step("matching"):
+            matching.match(database, names, tried, work, cfg)
+        geoms = consistency.read_geometries(database, names, chain | tried, cfg.min_num_inliers)
+        weak = mapping.weak_frames(verified, n, cfg)
+        loops: dict[str, Any] = {}
+
+        def check_joint(rec: Any, tri_options: Any, used: set[tuple[int, int]] = tried,
+                        ) -> dict[str, Any]:
+            # mapped with (untested) loop pairs: kept only when the model agrees with the chain
+            with timer.step("loops"):
+                fig = consistency.joint_check(rec, names, geoms, chain, used, cfg)
+            loops.update(fig)
+            if not fig["consistent"]:
+                raise _HoldBack(fig["reason"])
+            return loops  # quality.json's final_adjustment.loops (completed by bridge())
+
+        def close_loops(rec: Any, tri_options: Any) -> dict[str, Any]:
+            # loop (retrieval) pairs held back from mapping and used only where they agree
+            # with the model of the sequential chain (cystomap/sfm/consistency.py)
+            with timer.step("loops"):
+                loops.update(consistency.close_loops(
+                    rec, database, names, chain, tried, cfg, tri_options,
+                    lambda r: mapping.adjust(r, cfg, refine, cfg.ba_global_max_iterations),
+                    geoms))
+            return {k: v for k, v in loops.items()
+                    if k not in ("accepted", "rejected", "geometries")}
+
+        def bridge(held: mapping.MappingResult) -> mapping.MappingResult | None:
+            # the sequential chain broke into pieces: map again with the loop pairs that agreed
+            # with the largest piece and those that link it to the others (they could not be
+            # tested), kept only when that model passes the same check as a joint one
+            rec = held.reconstruction
+            inside = {rec.image(i).name for i in rec.reg_image_ids()}
+            accepted = set(loops.get("accepted", ()))
+            links = {p for p in tried if p in geoms
+                     and (names[p[0]] in inside) != (names[p[1]] in inside)}
+            if not links:
+                return None
+            used = accepted | links
+            saved = dict(loops)
+            log.info("sfm: %d of %d frames in the largest piece; mapping again with the %d loop "
+                     "pairs that agree with it and the %d that link it to the other pieces",
+                     len(inside), n, len(accepted), len(links))
+            consistency.write_pairs(database, names, [geoms[p] for p in sorted(links)])
+            loops.clear()
+            try:
+                out = run(lambda r, t: check_joint(r, t, used), "bridged")
+            except _HoldBack as why:
+                log.warning("sfm: not bridged: the model mapped with the linking loop pairs %s; "
+                            "keeping the largest piece", why)
+                out = None
+            if out is None or out.reconstruction.num_reg_images() <= len(inside):
+                consistency.delete_pairs(database, names, links)
+                loops.clear()
+                loops.update(saved)
+                return None
+            # the loop pairs the largest piece rejected stay rejected (they were not used)
+            earlier = [p for p in saved.get("rejected_pairs", []) if p not in loops["rejected_pairs"]]
+            loops["rejected_pairs"] = sorted(loops["rejected_pairs"] + earlier)
+            loops["loop_pairs_rejected"] += len(earlier)
+            loops["loop_pairs_verified"] += len(earlier)
+            loops["bridged_pieces"] = len(held.others)
+            return out
+
+        def run(hook: Any, sub: str) -> mapping.MappingResult | None:
+            return mapping.reconstruct(database, color_dir, work / sub, cfg, camera.calibrated,
+                                       names, key, enhanced, mask, masks_dir, weak,
+                                       undistort=undistort, close_loops=hook)
+
         with timer.step("mapping"):
-            result = mapping.reconstruct(database, color_dir, work, cfg, camera.calibrated,
-                                         names, key, enhanced, mask)
+            try:
+                result = run(check_joint, "joint")
+                mode = "joint"
+            except _HoldBack as why:
+                log.warning("sfm: the model mapped with the loop pairs %s; mapping again from "
+                            "the sequential pairs alone, loop pairs used only where they "
+                            "agree with that model", why)
+                consistency.delete_pairs(database, names, tried)
+                loops.clear()
+                result = run(close_loops, "held_back")
+                mode = "held_back"
+                if result is not None and result.others:
+                    bridged = bridge(result)
+                    if bridged is not None:
+                        result, mode = bridged, "bridged"
+        n_loops = len(tried)
+        pair_stats = {"sequential": n_tried, "retrieval": n_loops, "total": n_tried + n_loops,
+                      "keyframe_stride": stride}
+        failed = _failed_dir(out_dir)
         if result is None:
             matched = sum(1 for v in matches.verified_per_image.values() if v)
-            raise StageError(
+            message = (
                 f"sfm: 0 of {n} frames registered: no model of at least {cfg.min_model_frames} "
                 f"frames could be started ({matches.num_verified} verified pairs, {matched} frames "
                 f"with a verified match)"
             )
+            _write_failed(failed, message, names, None, pair_stats)
+            raise StageError(f"{message}; details in {failed}")
         rec = result.reconstruction
         n_reg = rec.num_reg_images()
         if n_reg < need:
-            raise StageError(
+            message = (
                 f"sfm: only {n_reg} of {n} frames registered in the largest model (need {need}); "
                 f"{len(result.models)} model(s) of {[len(m) for m in result.models]} frames, "
                 f"{matches.num_verified} of {n_tried} pairs verified"
             )
+            _write_failed(failed, message, names, result, pair_stats)
+            raise StageError(f"{message}; what did reconstruct (every model and a quality.json "
+                             f"listing their frames) is in {failed}, for inspection only")
+        n_tried += n_loops
+        matches = matching.read_stats(database, n_tried, cfg.min_num_inliers)
+        with timer.step("loops"):
+            check = consistency.self_check(rec, names, geoms, chain, tried, cfg)
+            check["loop_mode"] = mode
         mapping.as_pinhole(rec)
+        if undistort is not None:
+            color_dir = undistort.color_dir
         with timer.step("scale"):
             xyz, _, length, _ = quality.points_arrays(rec)
             est = scale.estimate_scale(
@@ -163,6 +271,11 @@ def run_sfm(
             log.info("colours: from %d of %d frames", n_read, n_reg)
         with timer.step("write"), atomic_dir(out_dir) as out:
             rec.write_binary(str(out))
+            if undistort is not None:
+                shutil.copytree(undistort.out, out / intrinsics.UNDISTORTED)
+                undistort.write(out)
+            else:
+                camera.save(out / "camera.json")
             xyz, rgb, _, _ = quality.points_arrays(rec)
             quality.write_ply(out / "points.ply", xyz, rgb)
             timings, cpu_times = timer.totals()
@@ -170,19 +283,75 @@ def run_sfm(
                 rec, names, features, matches, result.models, pair_stats, est.to_dict(), timings,
                 {"final_adjustment": result.final_ba,
                  "intrinsics": "refined" if refine else "fixed",
+                 "calibration": undistort.summary if undistort is not None
+                 else intrinsics.fixed_summary(camera),
                  "working_scale": features.scale,
+                 "consistency": check,
                  "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()},
                  "software": software_versions()},
                 cfg.min_num_inliers,
             )
+            q["other_models"] = [_piece(m, names) for m in result.models[1:]]
             write_json(out / "quality.json", q)
+    if failed.exists():  # a failure of an earlier run: no longer true
+        shutil.rmtree(failed, ignore_errors=True)
     log.info("sfm: %d of %d frames registered, %d points, reprojection error %.3f px, %.1f s",
              q["registered"], n, q["points"], q["mean_reprojection_error_px"] or float("nan"),
              timings["total"])
     if q["models_found"] > 1:
-        log.warning("sfm: %d models found; wrote the largest (%d frames), others have %s frames",
-                    q["models_found"], q["model_sizes"][0], q["model_sizes"][1:])
+        log.warning("sfm: %d models found; wrote the largest (%d frames); left out (listed in "
+                    "quality.json, other_models): %s", q["models_found"], q["model_sizes"][0],
+                    "; ".join(f"{p['frames']} frames {p['first']}..{p['last']}"
+                              for p in q["other_models"]))
     return out_dir
+
+
+class _HoldBack(Exception):
+    """The model mapped with the loop pairs contradicts the sequential chain."""
+
+
+def _failed_dir(out_dir: Path) -> Path:
+    """Where a failed run leaves what did reconstruct: beside, not inside, the outputs."""
+    return out_dir.with_name(out_dir.name + ".failed")
+
+
+def _piece(frames: list[str], names: list[str]) -> dict[str, object]:
+    """One model's frames for quality.json: count, first/last, names and video indices."""
+    order = {name: k for k, name in enumerate(names)}
+    frames = sorted(frames, key=lambda f: order.get(f, -1))
+    indices = []
+    for f in frames:
+        m = feat.FRAME_RE.search(f)
+        indices.append(int(m.group(1)) if m else order.get(f, -1))
+    return {"frames": len(frames), "first": frames[0] if frames else None,
+            "last": frames[-1] if frames else None, "names": frames, "video_frames": indices}
+
+
+def _write_failed(failed: Path, message: str, names: list[str],
+                  result: mapping.MappingResult | None, pair_stats: dict[str, int]) -> None:
+    """Write every model of a failed run (``model_0`` = the largest, COLMAP binary, model
+    units) and a quality.json listing their frames and the frames left out, to ``failed``."""
+    try:
+        with atomic_dir(failed) as tmp:
+            pieces: list[dict[str, object]] = []
+            if result is not None:
+                recs = [result.reconstruction, *result.others]
+                for k, (rec, frames) in enumerate(zip(recs, result.models, strict=False)):
+                    (tmp / f"model_{k}").mkdir()
+                    rec.write_binary(str(tmp / f"model_{k}"))
+                    pieces.append({"model": f"model_{k}", **_piece(frames, names)})
+            seen = {f for p in pieces for f in p["names"]}  # type: ignore[attr-defined]
+            write_json(tmp / "quality.json", {
+                "failed": True, "error": message, "frames_in": len(names),
+                "models_found": len(pieces), "model_sizes": [p["frames"] for p in pieces],
+                "models": pieces, "pairs": pair_stats,
+                "unregistered": [f for f in names if f not in seen],
+                "units": "model (no metric scale applied)",
+            })
+    except OSError as exc:  # the StageError that follows matters more
+        log.warning("sfm: could not write %s: %s", failed, exc)
+        return
+    log.error("sfm: failed; what did reconstruct is in %s (not an output of the stage)", failed)
 
 
 def _median(values: object) -> float:
