@@ -13,8 +13,9 @@ import synthetic_video as sv
 from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.frames import FramesConfig, extract_frames
-from cystomap.preprocess import PreprocessConfig, preprocess_frames, undistort_points
+from cystomap.preprocess import PreprocessConfig, preprocess_frames
 from cystomap.settings import from_mapping
+from cystomap.undistortion import undistort_points
 
 W, H = 320, 240
 DIST = (-0.3, 0.08, 0.0, 0.0, 0.0)

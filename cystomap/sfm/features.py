@@ -93,7 +93,7 @@ def extract(
     PINHOLE, or SIMPLE_PINHOLE when one focal length is to be refined), to ``database``.
 
     ``masks_dir`` (optional) holds a mask per frame (same name, 0 = no features: specular
-    glints, see :func:`cystomap.preprocess.glint_mask`); it is combined with the field-of-view
+    glints, see :func:`cystomap.glints.glint_mask`); it is combined with the field-of-view
     mask and handed to COLMAP as per-image masks."""
     import pycolmap
 

@@ -151,7 +151,8 @@ class Undistortion:
         rec.update_point_3d_errors()
 
     def _undistort_frames(self, est: Camera) -> None:
-        from cystomap.preprocess import PreprocessConfig, _Geometry
+        from cystomap.preprocess import PreprocessConfig
+        from cystomap.undistortion import _Geometry
 
         geo = _Geometry(est, PreprocessConfig())  # same K, no resize: the model's pinhole
         for sub in ("color", "enhanced"):
