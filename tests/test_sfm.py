@@ -31,6 +31,16 @@ def _phantom_camera() -> Camera:
     return Camera(1280, 720, 939.864, 939.864, 639.5, 359.5, (-0.12, 0.02, 0.0, 0.0, 0.0))
 
 
+def _decode(video: Path, frames: Path) -> Path:
+    """Every frame of ``video`` as f000000.png … in ``frames``."""
+    from cystomap.video import iter_frames
+
+    frames.mkdir()
+    for index, _, img in iter_frames(video):
+        cv2.imwrite(str(frames / f"f{index:06d}.png"), img)
+    return frames
+
+
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(truth dir, preprocessed dir with every frame) of a 640x360 phantom session."""
@@ -40,17 +50,7 @@ def small_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]
     root = tmp_path_factory.mktemp("sfm_phantom")
     camera = _phantom_camera().scaled(SMALL_SCALE)
     truth = generate_session(root / "session", 1, PhantomConfig(texture_detail_mm=0.4), camera)
-    frames = root / "frames"
-    frames.mkdir()
-    cap = cv2.VideoCapture(str(truth / "video.mp4"))
-    index = 0
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        cv2.imwrite(str(frames / f"f{index:06d}.png"), img)
-        index += 1
-    cap.release()
+    frames = _decode(truth / "video.mp4", root / "frames")
     pre = root / "preprocessed"
     preprocess_frames(frames, pre, camera, PreprocessConfig())
     return truth, pre
@@ -373,15 +373,11 @@ def glint_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]
     """(truth dir, preprocessed dir with every frame, glint masks) of that session."""
     from cystomap.phantom import PhantomConfig, generate_session
     from cystomap.preprocess import PreprocessConfig, preprocess_frames
-    from cystomap.video import iter_frames
 
     root = tmp_path_factory.mktemp("sfm_glint")
     camera = _phantom_camera().scaled(SMALL_SCALE)
     truth = generate_session(root / "session", 1, PhantomConfig(**GLINT), camera)
-    frames = root / "frames"
-    frames.mkdir()
-    for index, _, img in iter_frames(truth / "video.mp4"):
-        cv2.imwrite(str(frames / f"f{index:06d}.png"), img)
+    frames = _decode(truth / "video.mp4", root / "frames")
     pre = root / "preprocessed"
     preprocess_frames(frames, pre, camera, PreprocessConfig())
     return truth, pre
@@ -505,17 +501,7 @@ def test_uncalibrated_distorted_scope_is_self_calibrated(tmp_path_factory, tmp_p
                       (-0.2, 0.02, 0.0, 0.0, 0.0)).scaled(SMALL_SCALE)
     truth_dir = generate_session(root / "session", 1, PhantomConfig(texture_detail_mm=0.4),
                                  true_cam)
-    frames = root / "frames"
-    frames.mkdir()
-    cap = cv2.VideoCapture(str(truth_dir / "video.mp4"))
-    index = 0
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        cv2.imwrite(str(frames / f"f{index:06d}.png"), img)
-        index += 1
-    cap.release()
+    frames = _decode(truth_dir / "video.mp4", root / "frames")
     prior = Camera.from_fov(true_cam.width, true_cam.height, 70.0, name="scope")
     pre = root / "preprocessed"
     preprocess_frames(frames, pre, prior, PreprocessConfig())

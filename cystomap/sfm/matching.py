@@ -53,23 +53,9 @@ def match(
 
 def read_verified(database: Path, names: list[str], min_inliers: int) -> dict[tuple[int, int], int]:
     """Verified inlier matches of every pair in the database, keyed by name indices (i < j)."""
-    import pycolmap
+    from cystomap.sfm.consistency import read_geometries
 
-    index = {name: k for k, name in enumerate(names)}
-    db = pycolmap.Database.open(str(database))
-    try:
-        ids = {im.image_id: index[im.name] for im in db.read_all_images() if im.name in index}
-        pair_ids, geoms = db.read_two_view_geometries()
-    finally:
-        db.close()
-    out = {}
-    for pair_id, geom in zip(pair_ids, geoms, strict=True):
-        n = len(geom.inlier_matches)
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        if n >= min_inliers and a in ids and b in ids:
-            i, j = sorted((ids[a], ids[b]))
-            out[(i, j)] = n
-    return out
+    return {p: len(g.matches) for p, g in read_geometries(database, names, None, min_inliers).items()}
 
 
 def match_sequence(
