@@ -44,12 +44,17 @@ def _decode(video: Path, frames: Path) -> Path:
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(truth dir, preprocessed dir with every frame) of a 640x360 phantom session."""
+    return _render_and_preprocess(tmp_path_factory.mktemp("sfm_phantom"),
+                                  {"texture_detail_mm": 0.4})
+
+
+def _render_and_preprocess(root: Path, phantom: dict) -> tuple[Path, Path]:
+    """A 640x360 phantom session (``phantom`` overrides) decoded and preprocessed."""
     from cystomap.phantom import PhantomConfig, generate_session
     from cystomap.preprocess import PreprocessConfig, preprocess_frames
 
-    root = tmp_path_factory.mktemp("sfm_phantom")
     camera = _phantom_camera().scaled(SMALL_SCALE)
-    truth = generate_session(root / "session", 1, PhantomConfig(texture_detail_mm=0.4), camera)
+    truth = generate_session(root / "session", 1, PhantomConfig(**phantom), camera)
     frames = _decode(truth / "video.mp4", root / "frames")
     pre = root / "preprocessed"
     preprocess_frames(frames, pre, camera, PreprocessConfig())
@@ -371,16 +376,7 @@ GLINT = {"seed": 3, "texture_detail_mm": 0.4, "specular": True, "motion_blur_px"
 @pytest.fixture(scope="module")
 def glint_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(truth dir, preprocessed dir with every frame, glint masks) of that session."""
-    from cystomap.phantom import PhantomConfig, generate_session
-    from cystomap.preprocess import PreprocessConfig, preprocess_frames
-
-    root = tmp_path_factory.mktemp("sfm_glint")
-    camera = _phantom_camera().scaled(SMALL_SCALE)
-    truth = generate_session(root / "session", 1, PhantomConfig(**GLINT), camera)
-    frames = _decode(truth / "video.mp4", root / "frames")
-    pre = root / "preprocessed"
-    preprocess_frames(frames, pre, camera, PreprocessConfig())
-    return truth, pre
+    return _render_and_preprocess(tmp_path_factory.mktemp("sfm_glint"), GLINT)
 
 
 def test_glints_blur_and_bad_frames_register_in_one_model(glint_session, tmp_path):
