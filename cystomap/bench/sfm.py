@@ -191,7 +191,7 @@ def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: i
                                            row.get("cpu_total") or float("nan"))
         for method, runs in methods:
             times: list[dict[str, float]] = []
-            out = work / tag / ("sfm" if method == "cystomap" else "defaults")
+            out = pre.parent / ("sfm" if method == "cystomap" else "defaults")
             for k in range(runs):
                 log.info("%s: %s run %d/%d", tag, method, k + 1, runs)
                 try:
