@@ -427,11 +427,169 @@ def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float
     return Candidates(lab, level, stats, tails, expected, flagged, info)
 
 
+def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
+                     rate: float) -> tuple[np.ndarray, int]:
+    """Labels (joined across the azimuth seam) of ``mask`` split into separate changes.
+
+    A connected cluster can hold several changes linked by a ridge of noise (two neighbouring
+    lesions, one lesion and the registration residue of a vessel beside it). Its basins of
+    significance (watershed from its maxima) are merged in the order of the saddles between
+    them, highest first (the component tree of the significance), unless the two groups
+    they would join are separate changes by the pair's own null: each group is a change
+    above the saddle, its peak overshoot and excess mass *above the saddle* as unlikely as a
+    change's above the candidate level (expected null count at most ``rate``), and the
+    saddle itself is no change (its height alone would not be flagged at ``rate``: the ridge
+    between them is the wall's noise, not a crevice inside one lesion).
+    """
+    from scipy.ndimage import label as nd_label
+    from scipy.ndimage import maximum_filter
+    from skimage.segmentation import watershed
+
+    h, w = mask.shape
+    s = np.where(mask, sig, 0.0).astype(np.float64)
+    m = mask
+    a = area
+
+    peaks = m & (s >= maximum_filter(s, size=3, mode="nearest"))
+    markers, n_markers = nd_label(peaks, structure=np.ones((3, 3)))
+    if n_markers == 0:
+        lab, n = label_wrapped(mask)
+        return lab, n
+    ws = watershed(-s, markers, mask=m, connectivity=2)
+    # a basin's pixels that the seam-joined labelling would also join stay one cluster: the
+    # watershed does not wrap, so the seam's neighbours are linked below as saddles
+    # saddles: for each pair of touching basins, the highest of min(s_p, s_q) over their
+    # touching pixel pairs
+    pa, pb, pv = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r0, r1 = (0, h - dr)
+        c0, c1 = (max(0, -dc), w - max(0, dc))
+        la = ws[r0:r1, c0:c1]
+        lb = ws[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
+        ok = (la > 0) & (lb > 0) & (la != lb)
+        if ok.any():
+            va = s[r0:r1, c0:c1][ok]
+            vb = s[r0 + dr:r1 + dr, c0 + dc:c1 + dc][ok]
+            x, y = la[ok], lb[ok]
+            pa.append(np.minimum(x, y))
+            pb.append(np.maximum(x, y))
+            pv.append(np.minimum(va, vb))
+    for dr in (-1, 0, 1):  # across the azimuth seam (last column to the first)
+        r0, r1 = max(0, -dr), h - max(0, dr)
+        la, lb = ws[r0:r1, -1], ws[r0 + dr:r1 + dr, 0]
+        ok = (la > 0) & (lb > 0) & (la != lb)
+        if ok.any():
+            x, y = la[ok], lb[ok]
+            pa.append(np.minimum(x, y))
+            pb.append(np.maximum(x, y))
+            pv.append(np.minimum(s[r0:r1, -1][ok], s[r0 + dr:r1 + dr, 0][ok]))
+    parent = np.arange(n_markers + 1)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    if pa:
+        ea, eb, ev = np.concatenate(pa), np.concatenate(pb), np.concatenate(pv)
+        order = np.lexsort((-ev, eb, ea))
+        ea, eb, ev = ea[order], eb[order], ev[order]
+        first = np.ones(len(ea), bool)
+        first[1:] = (ea[1:] != ea[:-1]) | (eb[1:] != eb[:-1])
+        ea, eb, ev = ea[first], eb[first], ev[first]  # highest saddle per pair
+        flat = ws.ravel()
+        idx = np.argsort(flat, kind="stable")
+        bounds = np.searchsorted(flat[idx], np.arange(n_markers + 2))
+        members: dict[int, np.ndarray] = {
+            i: idx[bounds[i]:bounds[i + 1]] for i in range(1, n_markers + 1)}
+        sflat, aflat = s.ravel(), a.ravel()
+        ridge_level = null.tails[0].level(rate / len(null.tails)) if null.tails else math.inf
+
+        def separate(pix: np.ndarray, saddle: float) -> bool:
+            v = sflat[pix]
+            above = v > saddle
+            stats = np.array([null.level + float(v.max()) - saddle,
+                              math.sqrt(float(((v[above] - saddle) * aflat[pix][above]).sum()))])
+            return null.expected_false(stats) <= rate
+
+        for i in np.argsort(-ev, kind="stable"):
+            gi, gj = find(int(ea[i])), find(int(eb[i]))
+            if gi == gj:
+                continue
+            sd = float(ev[i])
+            if sd < ridge_level and separate(members[gi], sd) and separate(members[gj], sd):
+                continue
+            parent[max(gi, gj)] = min(gi, gj)
+            members[min(gi, gj)] = np.concatenate([members[gi], members[gj]])
+            members.pop(max(gi, gj))
+    roots = np.array([find(i) for i in range(n_markers + 1)])
+    _, new = np.unique(roots, return_inverse=True)
+    lab = new[ws].astype(np.int32)
+    lab[~mask] = 0
+    return lab, int(lab.max())
+
+
 def changed_mask(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
                  ) -> np.ndarray:
     """Pixels of the clusters flagged as changes at ``rate`` (illumination's second pass)."""
     c = candidates(sig, joint, area, rate)
     return np.isin(c.labels, np.nonzero(c.flagged)[0] + 1)
+
+
+def _join_pieces(lab: np.ndarray, n: int, cand: np.ndarray, diff: Difference,
+                 null: Candidates, cfg: Any, gap_kernel: np.ndarray | None,
+                 ) -> tuple[np.ndarray, int]:
+    """Pieces of one change made one region: pieces on both sides of a strip of wall one
+    session did not see (narrower than ``gap_fill_mm``: their growth across the uncompared
+    wall meets), and a piece too weak to be a change on its own (expected null count above
+    the rate) within ``merge_mm`` of another (fragments). Two pieces that are each a change
+    and are separated by compared wall stay apart: the wall between them is the pair's noise.
+    """
+    import cv2
+
+    grid = diff.grid
+    comp, _ = label_wrapped(cand)
+    bridge = ~diff.joint & grid.hit
+    flat_sig, flat_area = diff.significance.ravel(), grid.area.ravel()
+    merge_k = _disc(cfg.merge_mm / 2 / grid.mm_per_px_y) if cfg.merge_mm > 0 else None
+    one = _disc(1)
+    pieces = []
+    for r in range(1, n + 1):
+        m = lab == r
+        if not m.any():
+            continue
+        px = np.flatnonzero(m)
+        weak = null.expected_false(null.statistics(flat_sig[px], flat_area[px])) > cfg.false_alarm_rate
+        gap = (np.flatnonzero(_morph(m | (_morph(m, cv2.MORPH_DILATE, gap_kernel) & bridge),
+                                     cv2.MORPH_DILATE, one)) if gap_kernel is not None else px)
+        near = (np.flatnonzero(_morph(m, cv2.MORPH_DILATE, merge_k)) if merge_k is not None
+                else px)
+        pieces.append((r, int(comp.ravel()[px[0]]), weak, px, gap, near))
+    parent = {p[0]: p[0] for p in pieces}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, (ri, ci, wi, _pi, gi, ni) in enumerate(pieces):
+        for rj, cj, wj, pj, gj, _nj in pieces[i + 1:]:
+            if ci == cj:  # split from one cluster at a saddle: separate by the null
+                continue
+            joined = (gap_kernel is not None and len(np.intersect1d(gi, gj, assume_unique=True)) > 0)
+            if not joined and merge_k is not None and (wi or wj):
+                joined = len(np.intersect1d(ni, pj, assume_unique=True)) > 0
+            if joined:
+                a, b = find(ri), find(rj)
+                parent[max(a, b)] = min(a, b)
+    out = np.zeros_like(lab)
+    roots = sorted({find(p[0]) for p in pieces})
+    new_id = {r: k for k, r in enumerate(roots, start=1)}
+    for r, *_ in pieces:
+        out[lab == r] = new_id[find(r)]
+    return out, len(roots)
 
 
 def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
@@ -461,22 +619,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         k = _disc(r_px)
         cand = _morph(cand, cv2.MORPH_CLOSE, k)
         cand = _morph(cand, cv2.MORPH_OPEN, k) & diff.joint
-    lab, n = label_wrapped(cand)
+    # neighbouring changes in one cluster are split at the saddles of the significance
+    lab, n = split_at_saddles(sig, cand, grid.area, null, cfg.false_alarm_rate)
     # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
     # either side shrink by the morphological opening
     gap_kernel = (_disc((cfg.gap_fill_mm / 2 + cfg.edge_margin_mm + cfg.morphology_mm)
                         / grid.mm_per_px_y) if cfg.gap_fill_mm > 0 else None)
     if (cfg.merge_mm > 0 or gap_kernel is not None) and n > 1:
-        # fragments of one change closer than merge_mm, or on both sides of a strip of wall
-        # one session did not see (narrower than gap_fill_mm), are one region
-        grown = cand.copy()
-        if cfg.merge_mm > 0:
-            grown |= _morph(cand, cv2.MORPH_DILATE, _disc(cfg.merge_mm / 2 / grid.mm_per_px_y))
-        if gap_kernel is not None:
-            grown |= _morph(cand, cv2.MORPH_DILATE, gap_kernel) & ~diff.joint & grid.hit
-        glab, _ = label_wrapped(grown)
-        lab = np.where(cand, glab, 0)
-        n = int(lab.max())
+        lab, n = _join_pieces(lab, n, cand, diff, null, cfg, gap_kernel)
     min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
     regions: list[Region] = []
     dropped_small = 0
@@ -531,13 +681,15 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         c_idx = np.arange(c_lo, ucols.max() + pad_c + 1) % w
         sub_sig = sig[r_lo:r_hi][:, c_idx]
         sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
-        half = sub_joint & (sub_sig >= 0.5 * peak)
+        # the outline stays off the other regions' pixels (a neighbour split off at a saddle)
+        sub_lab = lab[r_lo:r_hi][:, c_idx]
+        half = sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
         core = np.zeros_like(half)
         core[rows - r_lo, ucols - c_lo] = True
-        _, sub_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
-        keep = np.unique(sub_lab[core & half])
+        _, half_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
+        keep = np.unique(half_lab[core & half])
         keep = keep[keep > 0]
-        outline = _fill_holes(np.isin(sub_lab, keep)) & sub_joint if len(keep) else core
+        outline = _fill_holes(np.isin(half_lab, keep)) & sub_joint if len(keep) else core
         # the outline closed across unseen strips of wall that cut into it (concavities
         # only: closing never reaches beyond the region's own convex outline)
         seen_outline = outline
