@@ -103,13 +103,16 @@ class CompareConfig:
     # are noise, and exponential tails fitted to the strongest of them (the strongest 10 %
     # counted only by their number, the changes taken out, iteratively) give each cluster the
     # expected number of noise clusters at least as strong; clusters at or below this rate
-    # are changes (changes.csv: expected_false). 0.1 = one false region in ten pairs
+    # are changes. A cluster holding several changes is split at the saddles of the
+    # significance where each side is a change above the saddle and the saddle is not
+    # (changes.csv: expected_false). 0.1 = one false region in ten pairs
     false_alarm_rate: float = 0.1
     # the smallest change reported: regions smaller than a disc of this diameter (model
     # units) are dropped, whatever their significance (a physical size, not a noise threshold)
     min_diameter_mm: float = 3.0
-    # pieces of one change closer than this (model units; e.g. cut by a thin unseen gap of
-    # an atlas) are one region
+    # a piece too weak to be a change on its own within this distance (model units) of
+    # another is part of it (fragments of one change); two pieces that are each a change
+    # stay apart, whatever their distance
     merge_mm: float = 4.0
     # a change cut by a strip of wall that one session did not film (a gap between two
     # sweeps of the scan) narrower than this (model units; the edge_margin_mm left out on
