@@ -41,11 +41,31 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from cystomap.errors import InputError, StageError
+from cystomap.geometry.pointcloud import statistical_inliers, voxel_bin
+from cystomap.geometry.quadric import Ellipsoid, fit_ellipsoid, sphere_fit
+from cystomap.geometry.sphere import direction_weights, icosphere, sphere_laplacian
+from cystomap.geometry.trimesh import (
+    mesh_volume,
+    point_distances,
+    topology,
+    triangle_areas,
+    vertex_normals,
+    volume_centroid,
+)
+from cystomap.io.colmap import find_model_dir, load_reconstruction
+from cystomap.io.ply import read_mesh, write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.settings import setting, validate
 
 log = logging.getLogger(__name__)
 
-MODEL_FILES = ("cameras", "images", "points3D")
+# the stage, and the core names older callers (report, tests) import from here
+__all__ = [
+    "MeshConfig", "SparseCloud", "SurfaceFit", "build_mesh", "find_model_dir",
+    "fit_closed_surface", "icosphere", "load_reconstruction", "load_sparse_cloud",
+    "mesh_volume", "point_distances", "read_mesh", "remove_outliers", "topology",
+    "triangle_areas", "vertex_normals", "volume_centroid", "voxel_bin", "write_ply",
+]
 
 
 @dataclass(frozen=True)
@@ -53,61 +73,42 @@ class MeshConfig:
     """Settings of the ``mesh`` stage (lengths relative to the cloud, so unit-free)."""
 
     # SfM points seen in fewer images than this are dropped (when read from the COLMAP model).
-    min_track_length: int = 2
+    min_track_length: int = setting(2, ">= 0")
     # SfM points with a larger mean reprojection error (pixels) are dropped; 0 keeps all.
-    max_reprojection_error_px: float = 4.0
+    max_reprojection_error_px: float = setting(4.0, ">= 0")
     # Statistical outlier removal: neighbours per point, and the cut in standard deviations
     # of the mean neighbour distance (0 neighbours = off).
-    outlier_neighbours: int = 16
-    outlier_std_ratio: float = 2.5
+    outlier_neighbors: int = setting(16, ">= 0")
+    outlier_std_ratio: float = setting(2.5, "> 0")
     # Points are binned (averaged) in voxels of this fraction of the median distance of the
     # points from the centre (0 = no binning).
-    voxel_fraction: float = 0.02
+    voxel_fraction: float = setting(0.02, "[0, 0.5)")
     # Direction grid of the radial fit: icosphere with 10·4^n + 2 vertices.
-    icosphere_subdivisions: int = 5
+    icosphere_subdivisions: int = setting(5, "[1, 7]")
     # Smoothness of r(direction): shapes up to about this spherical-harmonic degree pass,
     # finer detail (below ~180°/degree) and noise are smoothed away. Larger = less smoothing.
-    smooth_degree: float = 10.0
+    smooth_degree: float = setting(10.0, "> 0")
     # Where there are no points, the surface relaxes from the seen wall to the best-fitting
     # ellipsoid over about this angle (degrees, seen from the centre).
-    hole_decay_deg: float = 20.0
+    hole_decay_deg: float = setting(20.0, "> 0")
     # Robust reweighting rounds (Huber) of the radial fit, and the Huber threshold in robust
     # standard deviations (1.4826·MAD) of the residuals.
-    robust_iterations: int = 4
-    huber_k: float = 1.5
+    robust_iterations: int = setting(4, ">= 0")
+    huber_k: float = setting(1.5, "> 0")
     # Points farther than this many robust standard deviations from the fit get no weight.
     reject_k: float = 4.0
     # Refits about the volume centroid of the previous fit.
-    centre_iterations: int = 2
+    centre_iterations: int = setting(2, ">= 0")
     # Isotropic remeshing to even triangles (pymeshlab); the edge length is this fraction of
     # the mean radius (0 = keep the radial icosphere mesh).
-    remesh_edge_fraction: float = 0.03
+    remesh_edge_fraction: float = setting(0.03, "[0, 0.5)")
     # Iterations of the isotropic remeshing.
-    remesh_iterations: int = 4
+    remesh_iterations: int = setting(4, ">= 1")
     # At least this many points must remain after filtering.
-    min_points: int = 50
+    min_points: int = setting(50, ">= 10")
 
     def __post_init__(self) -> None:
-        checks = {
-            "min_track_length >= 0": self.min_track_length >= 0,
-            "max_reprojection_error_px >= 0": self.max_reprojection_error_px >= 0,
-            "outlier_neighbours >= 0": self.outlier_neighbours >= 0,
-            "outlier_std_ratio > 0": self.outlier_std_ratio > 0,
-            "0 <= voxel_fraction < 0.5": 0 <= self.voxel_fraction < 0.5,
-            "1 <= icosphere_subdivisions <= 7": 1 <= self.icosphere_subdivisions <= 7,
-            "smooth_degree > 0": self.smooth_degree > 0,
-            "hole_decay_deg > 0": self.hole_decay_deg > 0,
-            "robust_iterations >= 0": self.robust_iterations >= 0,
-            "huber_k > 0": self.huber_k > 0,
-            "reject_k > huber_k": self.reject_k > self.huber_k,
-            "centre_iterations >= 0": self.centre_iterations >= 0,
-            "0 <= remesh_edge_fraction < 0.5": 0 <= self.remesh_edge_fraction < 0.5,
-            "remesh_iterations >= 1": self.remesh_iterations >= 1,
-            "min_points >= 10": self.min_points >= 10,
-        }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"invalid mesh settings: need {', '.join(bad)}")
+        validate(self, "mesh", {"reject_k > huber_k": self.reject_k > self.huber_k})
 
 
 # --------------------------------------------------------------------------- stage entry point
@@ -187,27 +188,6 @@ class SparseCloud:
     all_points: np.ndarray  # (M, 3) every point read
     camera_centre: np.ndarray | None  # mean of the registered camera centres, if known
     n_read: int
-
-
-def find_model_dir(sfm_dir: Path) -> Path | None:
-    """The directory holding the COLMAP model (``sfm_dir`` itself or one level below)."""
-    for d in (sfm_dir, *sorted(p for p in sfm_dir.glob("*") if p.is_dir())):
-        if all((d / f"{n}.bin").is_file() or (d / f"{n}.txt").is_file() for n in MODEL_FILES):
-            return d
-    return None
-
-
-def load_reconstruction(sfm_dir: Path) -> Any:
-    """The COLMAP model of ``sfm_dir`` as a ``pycolmap.Reconstruction``."""
-    import pycolmap
-
-    model = find_model_dir(sfm_dir)
-    if model is None:
-        raise InputError(f"{sfm_dir}: no COLMAP model (cameras.bin, images.bin, points3D.bin)")
-    try:
-        return pycolmap.Reconstruction(str(model))
-    except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError
-        raise InputError(f"{model}: cannot read the COLMAP model ({exc})") from exc
 
 
 def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
@@ -317,30 +297,11 @@ def fit_closed_surface(
 
 def remove_outliers(points: np.ndarray, cfg: MeshConfig) -> np.ndarray:
     """Statistical outlier removal (mean distance to the k nearest neighbours)."""
-    if cfg.outlier_neighbours <= 0 or len(points) <= cfg.outlier_neighbours + 1:
+    if cfg.outlier_neighbors <= 0 or len(points) <= cfg.outlier_neighbors + 1:
         return points
-    from scipy.spatial import cKDTree
-
-    k = cfg.outlier_neighbours
-    d, _ = cKDTree(points).query(points, k=k + 1)
-    mean_d = d[:, 1:].mean(axis=1)
-    med = np.median(mean_d)
-    sigma = 1.4826 * np.median(np.abs(mean_d - med))
-    keep = mean_d <= med + cfg.outlier_std_ratio * max(sigma, 1e-12)
+    keep = statistical_inliers(points, cfg.outlier_neighbors, cfg.outlier_std_ratio)
     log.info("outlier removal: %d of %d points dropped", int((~keep).sum()), len(points))
     return points[keep]
-
-
-def voxel_bin(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Mean of the points in each occupied voxel of side ``voxel``."""
-    if voxel <= 0:
-        return points
-    key = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    out = np.zeros((len(counts), 3))
-    np.add.at(out, inv, points)
-    return out / counts[:, None]
 
 
 def initial_centre(points: np.ndarray, hint: np.ndarray | None) -> np.ndarray:
@@ -351,146 +312,6 @@ def initial_centre(points: np.ndarray, hint: np.ndarray | None) -> np.ndarray:
     if centre is None or np.linalg.norm(centre - med) > 2.0 * spread:
         centre = hint if hint is not None else points.mean(axis=0)
     return np.asarray(centre, dtype=np.float64)
-
-
-def sphere_fit(points: np.ndarray, iterations: int = 5) -> np.ndarray | None:
-    """Algebraic sphere fit, reweighted to resist outliers; ``None`` if degenerate."""
-    a = np.hstack([2 * points, np.ones((len(points), 1))])
-    b = (points**2).sum(axis=1)
-    w = np.ones(len(points))
-    sol = None
-    for _ in range(iterations):
-        sw = np.sqrt(w)[:, None]
-        sol, *_ = np.linalg.lstsq(a * sw, b * sw[:, 0], rcond=None)
-        c = sol[:3]
-        r2 = sol[3] + c @ c
-        if not r2 > 0:
-            return None
-        res = np.linalg.norm(points - c, axis=1) - math.sqrt(r2)
-        s = 1.4826 * np.median(np.abs(res)) + 1e-12
-        w = 1.0 / np.maximum(1.0, np.abs(res) / (2 * s))
-    return None if sol is None else sol[:3]
-
-
-def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit icosphere (vertices on the sphere, outward-oriented faces)."""
-    t = (1 + math.sqrt(5)) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]], dtype=np.int64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    for _ in range(subdivisions):
-        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        uniq, inv = np.unique(edges, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
-        mid = v[uniq[:, 0]] + v[uniq[:, 1]]
-        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-        m = len(f)
-        a, b, c = f[:, 0], f[:, 1], f[:, 2]
-        ab, bc, ca = (inv[:m] + len(v), inv[m : 2 * m] + len(v), inv[2 * m :] + len(v))
-        f = np.concatenate([np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1),
-                            np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)])
-        v = np.vstack([v, mid])
-    return v, f
-
-
-def sphere_laplacian(v: np.ndarray, f: np.ndarray) -> sp.csr_matrix:
-    """Uniform graph Laplacian scaled to approximate Laplace-Beltrami on the unit sphere."""
-    n = len(v)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                        shape=(n, n)).tocsr()
-    deg = np.asarray(adj.sum(axis=1)).ravel()
-    h = float(np.mean(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)))
-    # On a regular triangular grid of spacing h: mean(neighbours) - f ≈ h²/4 · Δf.
-    return (4.0 / h**2) * (sp.diags(1.0 / deg) @ adj - sp.identity(n)).tocsr()
-
-
-def direction_weights(
-    dirs: np.ndarray, sphere_v: np.ndarray, sphere_f: np.ndarray
-) -> sp.csr_matrix:
-    """Sparse (N, V) barycentric interpolation of vertex values at unit directions ``dirs``."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(sphere_v.astype(np.float32)),
-                        o3d.core.Tensor(sphere_f.astype(np.uint32)))
-    rays = np.hstack([np.zeros_like(dirs), dirs]).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
-    tri = ans["primitive_ids"].numpy().astype(np.int64)
-    uv = ans["primitive_uvs"].numpy().astype(np.float64)
-    miss = tri >= len(sphere_f)  # INVALID_ID: only for degenerate directions
-    tri[miss] = 0
-    bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    bary[miss] = 1.0 / 3.0
-    rows = np.repeat(np.arange(len(dirs)), 3)
-    return sp.csr_matrix((bary.ravel(), (rows, sphere_f[tri].ravel())),
-                         shape=(len(dirs), len(sphere_v)))
-
-
-@dataclass(frozen=True)
-class Ellipsoid:
-    """{p : (p - centre)ᵀ A (p - centre) = 1}, A symmetric positive definite."""
-
-    centre: np.ndarray
-    a: np.ndarray
-
-    def radius(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Distance from ``origin`` (inside) along unit ``dirs`` to the ellipsoid."""
-        o = origin - self.centre
-        qa = np.einsum("ij,jk,ik->i", dirs, self.a, dirs)
-        qb = 2.0 * dirs @ (self.a @ o)
-        qc = float(o @ self.a @ o) - 1.0
-        disc = np.maximum(qb * qb - 4 * qa * qc, 0.0)
-        return (-qb + np.sqrt(disc)) / (2 * qa)
-
-    def contains(self, p: np.ndarray) -> bool:
-        d = p - self.centre
-        return float(d @ self.a @ d) < 1.0
-
-    @classmethod
-    def sphere(cls, centre: np.ndarray, radius: float) -> Ellipsoid:
-        return cls(np.asarray(centre, float), np.eye(3) / radius**2)
-
-
-def fit_ellipsoid(points: np.ndarray, iterations: int = 4) -> Ellipsoid | None:
-    """Robust algebraic ellipsoid fit (trace-constrained quadric); ``None`` if not an ellipsoid."""
-    m = points.mean(axis=0)
-    s = float(np.sqrt(((points - m) ** 2).sum(axis=1).mean()))
-    x, y, z = ((points - m) / s).T
-    d = np.stack([x * x + y * y - 2 * z * z, x * x + z * z - 2 * y * y, 2 * x * y, 2 * x * z,
-                  2 * y * z, 2 * x, 2 * y, 2 * z, np.ones_like(x)], axis=1)
-    rhs = x * x + y * y + z * z
-    w = np.ones(len(x))
-    ell = None
-    for _ in range(iterations):
-        sw = np.sqrt(w)
-        # A little ridge keeps the fit defined when only part of the wall was seen.
-        lhs = (d * sw[:, None]).T @ (d * sw[:, None]) + 1e-6 * len(x) * np.eye(9)
-        u = np.linalg.solve(lhs, (d * sw[:, None]).T @ (rhs * sw))
-        q = np.array([[u[0] + u[1] - 1, u[2], u[3]], [u[2], u[0] - 2 * u[1] - 1, u[4]],
-                      [u[3], u[4], u[1] - 2 * u[0] - 1]])
-        lin = u[5:8]
-        try:
-            c = -np.linalg.solve(q, lin)
-        except np.linalg.LinAlgError:
-            return None
-        k = float(c @ q @ c) - u[8]
-        a_mat = q / k
-        ev = np.linalg.eigvalsh(a_mat)
-        if not (ev.min() > 0 and ev.min() > 0.02 * ev.max()):
-            return None
-        ell = Ellipsoid(m + s * c, a_mat / s**2)
-        p = points - ell.centre
-        g = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", p, ell.a, p), 1e-300))
-        res = (g - 1.0) / np.sqrt(ev.mean())  # ≈ radial distance to the ellipsoid
-        sigma = 1.4826 * float(np.median(np.abs(res))) + 1e-12
-        w = 1.0 / np.maximum(1.0, np.abs(res) / (2 * sigma))
-    return ell
 
 
 def fit_radial(
@@ -561,100 +382,3 @@ def isotropic_remesh(
 # --------------------------------------------------------------------------- mesh utilities
 
 
-def triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
-def mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
-    """Signed volume of a closed mesh (positive for outward-oriented faces)."""
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def volume_centroid(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Centre of mass of the solid bounded by a closed mesh."""
-    o = verts.mean(axis=0)
-    a, b, c = (verts[faces[:, i]] - o for i in range(3))
-    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-    total = vol.sum()
-    if abs(total) < 1e-300:
-        return o
-    return o + ((a + b + c) / 4.0 * vol[:, None]).sum(axis=0) / total
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (verts[faces[:, i]] for i in range(3))
-    fn = np.cross(b - a, c - a)
-    vn = np.zeros_like(verts)
-    for i in range(3):
-        np.add.at(vn, faces[:, i], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-
-
-def topology(verts: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
-    """Watertight (no boundary edge), two-manifold (edges and vertices), genus (pymeshlab)."""
-    import pymeshlab as ml
-
-    ms = ml.MeshSet()
-    ms.add_mesh(ml.Mesh(vertex_matrix=verts, face_matrix=faces.astype(np.int32)))
-    t = ms.get_topological_measures()
-    manifold = bool(t["is_mesh_two_manifold"]) and t["non_two_manifold_vertices"] == 0
-    return {
-        "watertight": manifold and t["boundary_edges"] == 0 and t["number_holes"] == 0,
-        "manifold": manifold,
-        "genus": int(t["genus"]),
-        "components": int(t["connected_components_number"]),
-    }
-
-
-def point_distances(verts: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Unsigned distance of each point to the mesh (open3d, float32 about the mesh centre)."""
-    import open3d as o3d
-
-    if len(points) == 0:
-        return np.zeros(0)
-    o = verts.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((verts - o).astype(np.float32)),
-                        o3d.core.Tensor(faces.astype(np.uint32)))
-    q = o3d.core.Tensor((np.asarray(points) - o).astype(np.float32))
-    return scene.compute_distance(q).numpy().astype(np.float64)
-
-
-def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray,
-              normals: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY with float vertices (and normals) and int faces."""
-    verts = np.asarray(verts, dtype="<f4")
-    has_n = normals is not None
-    header = ["ply", "format binary_little_endian 1.0", "comment cystomap mesh (mm)",
-              f"element vertex {len(verts)}", "property float x", "property float y",
-              "property float z"]
-    if has_n:
-        header += ["property float nx", "property float ny", "property float nz"]
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices",
-               "end_header"]
-    vdata = np.hstack([verts, np.asarray(normals, dtype="<f4")]) if has_n else verts
-    fdata = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    fdata["n"] = 3
-    fdata["i"] = faces
-    with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(np.ascontiguousarray(vdata, dtype="<f4").tobytes())
-        fh.write(fdata.tobytes())
-    return path
-
-
-def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (float64) and faces (int64) of a triangle mesh file; InputError if unusable."""
-    import open3d as o3d
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"mesh {path} not found")
-    m = o3d.io.read_triangle_mesh(str(path))
-    v = np.asarray(m.vertices, dtype=np.float64)
-    f = np.asarray(m.triangles, dtype=np.int64)
-    if len(v) == 0 or len(f) == 0:
-        raise InputError(f"mesh {path}: no triangles (not a triangle mesh, or unreadable)")
-    return v, f

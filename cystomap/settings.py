@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 from cystomap.errors import InputError
@@ -74,3 +75,73 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
             raise InputError(f"config {where}: expected a string, got {value!r}")
         return value
     return value
+
+
+# --------------------------------------------------------------------------- ranges
+
+_BOUND = re.compile(r"^\s*(>=|>|<=|<)\s*(\S+)\s*$")
+_INTERVAL = re.compile(r"^\s*([\[(])\s*(\S+)\s*,\s*(\S+)\s*([\])])\s*$")
+
+
+def setting(default: Any, check: str | None = None, *, choices: Iterable[Any] | None = None) -> Any:
+    """A config field: its default and, next to it, the values it accepts.
+
+    ``check`` is a bound (``">= 16"``, ``"> 0"``) or an interval (``"[0, 1)"``, ``"(0, 255]"``);
+    ``choices`` the allowed values. :func:`validate` (called from ``__post_init__``) enforces
+    them, so a key's range is written once.
+    """
+    if check is not None:
+        _parse_check(check)  # a typo fails at import time, not at the first bad config
+    meta = {"check": check, "choices": tuple(choices) if choices is not None else None}
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _parse_check(check: str) -> tuple[tuple[str, float] | None, tuple[str, float] | None]:
+    """(lower, upper) bounds of a check: (operator, value) or None."""
+    m = _BOUND.match(check)
+    if m:
+        op, value = m.group(1), float(m.group(2))
+        return ((op, value), None) if op in (">=", ">") else (None, (op, value))
+    m = _INTERVAL.match(check)
+    if not m:
+        raise ValueError(f"bad range {check!r}: use '>= a', '> a', '<= b', '< b' or '[a, b)'")
+    lo = (">=" if m.group(1) == "[" else ">", float(m.group(2)))
+    hi = ("<=" if m.group(4) == "]" else "<", float(m.group(3)))
+    return lo, hi
+
+
+_OPS = {">=": float.__ge__, ">": float.__gt__, "<=": float.__le__, "<": float.__lt__}
+
+
+def _check_text(name: str, check: str) -> str:
+    lo, hi = _parse_check(check)
+    if lo and hi:
+        flip = {">=": "<=", ">": "<"}
+        return f"{_num(lo[1])} {flip[lo[0]]} {name} {hi[0]} {_num(hi[1])}"
+    op, value = lo or hi  # type: ignore[misc]
+    return f"{name} {op} {_num(value)}"
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if x.is_integer() else repr(x)
+
+
+def validate(obj: Any, section: str, extra: Mapping[str, bool] | None = None) -> None:
+    """Check every field of dataclass ``obj`` declared with :func:`setting` against its range
+    or choices, and the ``extra`` conditions (description → holds); ValueError naming all
+    that fail: ``invalid <section> settings: need …``."""
+    bad: list[str] = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        choices = f.metadata.get("choices")
+        if choices is not None and value not in choices:
+            bad.append(f"{f.name} in ({', '.join(map(str, choices))}), not {value!r}")
+        check = f.metadata.get("check")
+        if check is not None:
+            lo, hi = _parse_check(check)
+            ok = all(_OPS[op](float(value), bound) for op, bound in filter(None, (lo, hi)))
+            if not ok:
+                bad.append(f"{_check_text(f.name, check)} (got {value!r})")
+    bad += [k for k, ok in (extra or {}).items() if not ok]
+    if bad:
+        raise ValueError(f"invalid {section} settings: need {', '.join(bad)}")

@@ -11,16 +11,15 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from cystomap.errors import InputError
+from cystomap.parallel import ordered_map as ordered_map  # re-exported: preprocess, frames
 
 log = logging.getLogger(__name__)
 
@@ -212,27 +211,3 @@ def circle_mask(shape: tuple[int, int], cx: float, cy: float, r: float) -> np.nd
     h, w = shape
     yy, xx = np.mgrid[0:h, 0:w]
     return np.where((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r, 255, 0).astype(np.uint8)
-
-
-T = TypeVar("T")
-R = TypeVar("R")
-
-
-def ordered_map(fn: Callable[[T], R], items: Iterable[T], threads: int) -> Iterator[R]:
-    """``map(fn, items)`` on a thread pool, at most ``2 * threads`` items in flight, in order;
-    the first exception is raised and pending work is cancelled."""
-    if threads <= 1:
-        yield from map(fn, items)
-        return
-    pending: list[Future[R]] = []
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        try:
-            for item in items:
-                pending.append(pool.submit(fn, item))
-                if len(pending) >= 2 * threads:
-                    yield pending.pop(0).result()
-            while pending:
-                yield pending.pop(0).result()
-        finally:
-            for f in pending:
-                f.cancel()

@@ -4,8 +4,7 @@ from pathlib import Path
 
 from cystomap.atlas import AtlasConfig, build_atlas
 from cystomap.logs import log_to
-from cystomap.settings import from_mapping
-from cystomap.snakemake_io import with_threads
+from cystomap.snakemake_io import job_config
 
 sm = snakemake  # type: ignore[name-defined]  # noqa: F821
 with log_to(sm.log[0]):
@@ -14,6 +13,6 @@ with log_to(sm.log[0]):
         Path(sm.input.preprocessed),
         Path(sm.input.mesh),
         Path(sm.output.atlas),
-        from_mapping(AtlasConfig, with_threads(sm.params.atlas, "threads", sm.threads), "atlas"),
+        job_config(AtlasConfig, sm.params.atlas, "atlas", sm.threads),
         anatomy=sm.params.anatomy,
     )

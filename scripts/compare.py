@@ -5,8 +5,7 @@ from pathlib import Path
 from cystomap.compare import CompareConfig, compare_sessions
 from cystomap.compare.stage import SessionPaths
 from cystomap.logs import log_to
-from cystomap.settings import from_mapping
-from cystomap.snakemake_io import with_threads
+from cystomap.snakemake_io import job_config
 
 sm = snakemake  # type: ignore[name-defined]  # noqa: F821
 with log_to(sm.log[0]):
@@ -15,6 +14,6 @@ with log_to(sm.log[0]):
         SessionPaths(*a),
         SessionPaths(*b),
         Path(sm.output.compare),
-        from_mapping(CompareConfig, with_threads(sm.params.compare, "threads", sm.threads), "compare"),
+        job_config(CompareConfig, sm.params.compare, "compare", sm.threads),
         landmarks=sm.params.landmarks,
     )

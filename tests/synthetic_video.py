@@ -8,6 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cystomap.video import iter_frames
+
 WIDTH, HEIGHT = 320, 180
 
 
@@ -99,15 +101,7 @@ def pan_frames(
 
 
 def decode_all(path: Path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    out = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        out.append(f)
-    cap.release()
-    return out
+    return [f for _, _, f in iter_frames(path)]
 
 
 # ------------------------------------------------------------------ images for preprocess

@@ -167,20 +167,20 @@ def ssim(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1**2 + mu2**2 + c1) * (s11 + s22 + c2))
 
 
-@pytest.fixture(scope="module")
-def full_scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    root = tmp_path_factory.mktemp("full")
-    scene = make_scene(root, n_cams=28, hemisphere=False, seed=5)
+def _atlas_scene(root: Path, n_cams: int, hemisphere: bool, seed: int) -> dict[str, Any]:
+    scene = make_scene(root, n_cams=n_cams, hemisphere=hemisphere, seed=seed)
     scene["out"] = build_atlas(scene["sfm"], scene["pre"], scene["mesh"], root / "atlas", ATLAS)
     return scene
+
+
+@pytest.fixture(scope="module")
+def full_scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return _atlas_scene(tmp_path_factory.mktemp("full"), n_cams=28, hemisphere=False, seed=5)
 
 
 @pytest.fixture(scope="module")
 def half_scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    root = tmp_path_factory.mktemp("half")
-    scene = make_scene(root, n_cams=18, hemisphere=True, seed=6)
-    scene["out"] = build_atlas(scene["sfm"], scene["pre"], scene["mesh"], root / "atlas", ATLAS)
-    return scene
+    return _atlas_scene(tmp_path_factory.mktemp("half"), n_cams=18, hemisphere=True, seed=6)
 
 
 # --------------------------------------------------------------------------- pixel convention

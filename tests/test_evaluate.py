@@ -403,7 +403,7 @@ def test_config_from_mapping_checks_keys_and_values() -> None:
     assert cfg.completeness_threshold_mm == 1.0 and cfg.alignment_trim == 3.0
     with pytest.raises(InputError, match="evaluate: unknown key"):
         from_mapping(EvalConfig, {"threshold": 1}, "evaluate")
-    with pytest.raises(InputError, match="completeness_threshold_mm must be positive"):
+    with pytest.raises(InputError, match="completeness_threshold_mm > 0"):
         from_mapping(EvalConfig, {"completeness_threshold_mm": 0}, "evaluate")
     with pytest.raises(InputError, match="capture group"):
         from_mapping(EvalConfig, {"frame_pattern": r"\d+"}, "evaluate")

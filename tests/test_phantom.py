@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from cystomap.phantom.render import EXPOSURE_TARGET, Renderer, finish, optical_b
 from cystomap.phantom.texture import build_mucosa
 from cystomap.phantom.trajectory import make_trajectory
 from cystomap.settings import from_mapping
+from cystomap.video import iter_frames
 
 SMALL = {"n_frames": 12, "cube_face_px": 512, "atlas_height": 1024}
 
@@ -31,15 +33,19 @@ SMALL = {"n_frames": 12, "cube_face_px": 512, "atlas_height": 1024}
 
 
 def read_frames(path: Path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
-    cap.release()
-    return frames
+    return [cv2.cvtColor(f, cv2.COLOR_BGR2RGB) for _, _, f in iter_frames(path)]
+
+
+def good_frame_hits(scene, cam: Camera, pix: np.ndarray, rot: np.ndarray, cen: np.ndarray,
+                    truth: dict) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """For every frame that is not a bad frame: its index, the ray directions through the
+    pixels ``pix`` and the distance to the wall along them (inf where a ray misses)."""
+    rays = undistorted_rays(cam, pix)
+    bad = {b["frame"] for b in truth["bad_frames"]}
+    for k in range(len(cen)):
+        if k not in bad:
+            dirs = rays @ rot[k].T
+            yield k, dirs, cast(scene, cen[k], dirs)["t_hit"]
 
 
 def read_poses(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -212,18 +218,12 @@ def test_images_show_the_true_surface(sessions, camera, session):
     bary = np.array(truth["barycentre"])
     frames = read_frames(d / "video.mp4")
     u, v = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-    rays = undistorted_rays(cam, np.stack([u, v], -1).reshape(-1, 2))
-    bad = {b["frame"] for b in truth["bad_frames"]}
+    pix = np.stack([u, v], -1).reshape(-1, 2)
     shifts, corr, corr_flip, ratios = [], [], [], []
-    for k in range(len(frames)):
-        if k in bad:
-            continue
-        dirs = rays @ rot[k].T
-        hit = cast(scene, cen[k], dirs)
-        ok = np.isfinite(hit["t_hit"])
-        if ok.mean() < 0.95:
+    for k, dirs, t_hit in good_frame_hits(scene, cam, pix, rot, cen, truth):
+        if np.isfinite(t_hit).mean() < 0.95:
             continue  # looking through the aperture
-        p = cen[k] + np.nan_to_num(hit["t_hit"])[:, None] * dirs
+        p = cen[k] + np.nan_to_num(t_hit)[:, None] * dirs
         rel = p - bary
         pred = sample_atlas(albedo, rel / np.linalg.norm(rel, axis=1, keepdims=True))
         pred = pred.reshape(cam.height, cam.width, 3)
@@ -405,16 +405,10 @@ def test_seen_fraction(sessions):
         _, rot, cen = read_poses(d / "poses.csv")
         g = np.random.default_rng(0)
         pix = np.stack([g.uniform(0, cam.width - 1, 300), g.uniform(0, cam.height - 1, 300)], 1)
-        rays = undistorted_rays(cam, pix)
-        bad = {b["frame"] for b in truth["bad_frames"]}
         missed = total = 0
-        for k in range(len(cen)):
-            if k in bad:
-                continue
-            dirs = rays @ rot[k].T
-            hit = cast(scene, cen[k], dirs)
-            ok = np.isfinite(hit["t_hit"])
-            rel = cen[k] + hit["t_hit"][ok, None] * dirs[ok] - bary
+        for k, dirs, t_hit in good_frame_hits(scene, cam, pix, rot, cen, truth):
+            ok = np.isfinite(t_hit)
+            rel = cen[k] + t_hit[ok, None] * dirs[ok] - bary
             az = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]))
             el = np.degrees(np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1])))
             col = np.clip(((az + 180) / 360 * 2 * h).astype(int), 0, 2 * h - 1)

@@ -276,8 +276,9 @@ def test_lesion_sites_and_papillary_relief():
 def test_lesion_kinds_paint():
     """Each kind changes the wall as named: painted/papillary strongly, cis as a low-contrast
     reddening, scar paler, perivascular red with a vessel beside it that both sessions show."""
+    from cystomap.phantom.cubemap import CubeMap
     from cystomap.phantom.lesions import paint_lesions, paint_site_vessels, place_lesions
-    from cystomap.phantom.texture import CubeMap, tangent_frame
+    from cystomap.phantom.mosaic import tangent_frame
 
     kinds = ("painted", "cis", "scar", "perivascular")
     cfg = PhantomConfig(cube_face_px=512, lesion_diameters_mm=(12.0, 14.0, 16.0, 18.0),

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cystomap.anatomy import ANATOMY_COLUMNS, REGIONS
 from cystomap.atlas.projection import Projection
 from cystomap.compare.changes import CHANGE_COLUMNS
 from cystomap.errors import InputError
@@ -19,6 +20,7 @@ from cystomap.report.model3d import Geometry, load_geometry, vertex_colours
 
 ATLAS_W, ATLAS_H = 256, 128
 RADIUS = 40.0
+ROT = np.radians(10.0)  # each later session's model frame is the one before turned by this about z
 SMALL = ReportConfig(image_width=200, model_vertices=3000)
 
 
@@ -49,9 +51,14 @@ def write_session(root: Path, name: str, date: str, seed: int, metric: bool = Tr
     views = np.tile(np.linspace(0, 25, ATLAS_W).astype(np.uint8), (ATLAS_H, 1))
     imwrite_rgb(d / "atlas/coverage.png", np.dstack([views * 8, views * 4, 255 - views * 8]))
     proj = Projection("equirectangular", ATLAS_W, ATLAS_H)
+    # seen share per region: the dome unseen in session 0, half seen later; the neck 80 % seen
+    seen = {r: 100.0 for r in REGIONS} | {"dome": 50.0 * min(seed, 1), "trigone/neck": 80.0}
+    regions = {r: {"area_mm2": 1000.0, "seen_area_mm2": 10 * v, "seen_percent": v} for r, v in seen.items()}
+    anatomy = {"origin": [0.0, 0.0, 0.0], "neck": [0.0, 0.0, -1.0], "anterior": [1.0, 0.0, 0.0], "source": "test"}
     write_json(d / "atlas/atlas.json", {**proj.to_json(), "coverage_percent": 90.0 + seed,
                                         "coverage": {"views_median": 7.0, "coverage_png": {"max_views": 20}},
-                                        "frames": {"registered": 45, "contributing": 44}})
+                                        "frames": {"registered": 45, "contributing": 44},
+                                        "anatomy": anatomy, "regions": regions})
     write_json(d / "frames/frames.json", {"frames_decoded": 60, "frames_kept": 50})
     scale = ({"factor": 2.0, "source": "extent_mm", "metric": True, "model_extent": 60.0} if metric
              else {"factor": 1.0, "source": "none", "metric": False})
@@ -68,10 +75,12 @@ def write_comparison(root: Path, a: SessionInputs, b: SessionInputs, registered:
 
     d = root / "compare" / f"{a.atlas.parent.name}_vs_{b.atlas.parent.name}"
     d.mkdir(parents=True)
+    b_index = int(b.atlas.parent.name.removeprefix("session"))  # the change sites turn with B's frame
     reg = {"registered": registered, "reason": "" if registered else "only 4 inlier matches (need 25)",
            "matches": 60, "inliers": 48 if registered else 4, "inlier_ratio": 0.8 if registered else 0.07}
-    if registered:
-        reg["transform_a_to_b"] = {"scale": 1.01}
+    if registered:  # B's frame is A's turned by 10° about z (the change sites move with it)
+        rot = [[np.cos(ROT), -np.sin(ROT), 0.0], [np.sin(ROT), np.cos(ROT), 0.0], [0.0, 0.0, 1.0]]
+        reg["transform_a_to_b"] = {"scale": 1.01, "rotation": rot, "translation": [0.0, 0.0, 0.0]}
         reg["residual_mm"] = {"after_spline": {"median": 0.5}}
     write_json(d / "registration.json", reg)
     write_json(d / "compare.json", {"registered": registered, "changes": n_changes if registered else 0})
@@ -92,14 +101,18 @@ def write_comparison(root: Path, a: SessionInputs, b: SessionInputs, registered:
             write_glb(d / "changes.glb", uv_unwrap(verts, faces, Projection("equirectangular", ATLAS_W, ATLAS_H)),
                       png.tobytes())
         for i in range(n_changes):
-            az = np.radians(-30 + 40 * i)
+            az = np.radians(-30 + 40 * i) + ROT * b_index
+            growth = 1.0 + 0.2 * (b_index - 1)  # the sites grow by a fifth per later session
             rows.append({"id": i + 1, "x": RADIUS * np.cos(az), "y": RADIUS * np.sin(az), "z": 5.0,
-                         "azimuth_deg": np.degrees(az), "elevation_deg": 7.0, "area_mm2": 80.0 - i,
-                         "diameter_mm": 10.1 - i, "mean_difference": 30.0, "score": 3.0 - i / 10})
+                         "azimuth_deg": np.degrees(az), "elevation_deg": 7.0, "area_mm2": (80.0 - i) * growth ** 2,
+                         "diameter_mm": round((10.1 - i) * growth, 2), "mean_difference": 30.0,
+                         "score": 3.0 - i / 10, "region": ("left lateral wall", "posterior wall")[i % 2],
+                         "clock": 2.5 + 3 * i, "distance_from_neck_mm": 40.0 + i})
+    columns = CHANGE_COLUMNS + ANATOMY_COLUMNS
     with open(d / "changes.csv", "w") as fh:
-        fh.write(",".join(CHANGE_COLUMNS) + "\n")
+        fh.write(",".join(columns) + "\n")
         for r in rows:
-            fh.write(",".join(str(r.get(c, "")) for c in CHANGE_COLUMNS) + "\n")
+            fh.write(",".join(str(r.get(c, "")) for c in columns) + "\n")
     return ComparisonInputs(a.name, b.name, d)
 
 
@@ -110,6 +123,28 @@ def make_study(root: Path, names: tuple[str, ...] = ("s1", "s2", "s3"), register
     comparisons = [write_comparison(root, a, b, reg) for a, b, reg in zip(sessions[:-1], sessions[1:], registered,
                                                                              strict=True)]
     return sessions, comparisons
+
+
+def write_findback(c: ComparisonInputs, seed: int = 0) -> None:
+    """compare's find-back for changes 1 and 2: crops (change 2 has no frame of A) and frames."""
+    from cystomap.compare.findback import FINDBACK_COLUMNS
+
+    d = c.compare
+    (d / "findback").mkdir()
+    rng = np.random.default_rng(seed)
+    for ident in (1, 2):
+        for crop in ("atlas_a", "atlas_b", "frame_a", "frame_b"):
+            if ident == 2 and crop == "frame_a":
+                continue  # no frame of A saw change 2's site
+            imwrite_rgb(d / "findback" / f"change{ident}_{crop}.png",
+                        rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    rows = [(1, "b", 1, 42, 4.2), (1, "b", 2, 80, 8.0), (1, "a", 1, 17, 1.7), (2, "b", 1, 5, 0.5)]
+    with open(d / "findback.csv", "w") as fh:
+        fh.write(",".join(FINDBACK_COLUMNS) + "\n")
+        for ident, key, rank, frame, t in rows:
+            r = {"id": ident, "session": key, "rank": rank, "frame": frame, "time_s": t,
+                 "image": f"f{frame:06d}.png", "score": 1.0 / rank}
+            fh.write(",".join(str(r.get(c, "")) for c in FINDBACK_COLUMNS) + "\n")
 
 
 def view_data(text: str) -> dict:
@@ -278,25 +313,8 @@ def test_geometry_json_round_trips():
 def test_each_change_has_a_card_with_its_crops_and_frames(tmp_path):
     """compare's find-back (findback.csv, findback/*.png) becomes one card per change: the four
     crops embedded, the frames of each session with their video index and time."""
-    from cystomap.compare.findback import FINDBACK_COLUMNS
-
     sessions, comparisons = make_study(tmp_path, names=("pre", "post"))
-    d = comparisons[0].compare
-    (d / "findback").mkdir()
-    rng = np.random.default_rng(0)
-    for ident in (1, 2):
-        for crop in ("atlas_a", "atlas_b", "frame_a", "frame_b"):
-            if ident == 2 and crop == "frame_a":
-                continue  # no frame of A saw change 2's site
-            imwrite_rgb(d / "findback" / f"change{ident}_{crop}.png",
-                        rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
-    rows = [(1, "b", 1, 42, 4.2), (1, "b", 2, 80, 8.0), (1, "a", 1, 17, 1.7), (2, "b", 1, 5, 0.5)]
-    with open(d / "findback.csv", "w") as fh:
-        fh.write(",".join(FINDBACK_COLUMNS) + "\n")
-        for ident, key, rank, frame, t in rows:
-            r = {"id": ident, "session": key, "rank": rank, "frame": frame, "time_s": t,
-                 "image": f"f{frame:06d}.png", "score": 1.0 / rank}
-            fh.write(",".join(str(r.get(c, "")) for c in FINDBACK_COLUMNS) + "\n")
+    write_findback(comparisons[0])
     text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
     section = text[text.index("id='compare-pre-post'"):]
     section = section[:section.index("</section>")]
@@ -313,3 +331,117 @@ def test_each_change_has_a_card_with_its_crops_and_frames(tmp_path):
     capped = build_report("p", sessions, comparisons, tmp_path / "c.html",
                           ReportConfig(image_width=200, model_vertices=3000, max_change_cards=1))
     assert capped.read_text().count("<article class='card'") == 1
+
+
+def test_summary_lists_coverage_regions_and_changes(three_sessions):
+    """The summary for the record: coverage per session and per standard region (the regions
+    not fully seen named), each change with its region, clock, distance from the neck and size."""
+    _, text = three_sessions
+    summary = text[text.index("id='summary'"):]
+    summary = summary[:summary.index("</section>")]
+    regions = summary[summary.index("<table class='data regions'>"):]
+    regions = regions[:regions.index("</table>")]
+    assert regions.count("<tr>") == 1 + 2 + len(REGIONS)  # header, frames registered, whole wall, regions
+    assert "<td>whole wall seen</td><td>90.0 %</td><td>91.0 %</td><td>92.0 %</td>" in regions
+    assert "<td>dome</td><td class='bad'>0 %</td><td class='part'>50 %</td>" in regions
+    assert ("Not fully seen: <strong>s1</strong>: trigone/neck (80 % seen), dome (not seen); "
+            "<strong>s2</strong>") in summary
+    changes = summary[summary.index("<table class='data summary-changes'>"):]
+    changes = changes[:changes.index("</table>")]
+    assert changes.count("<tr>") == 3  # header + the 2 changes of s1 → s2 (s2 → s3 not registered)
+    assert ("<td>s1 → s2</td><td><a href='#change-s1-s2-1'>1</a></td><td>left lateral wall</td><td>2:30</td>"
+            "<td>40 mm</td><td>10.1 mm</td><td>80.0 mm²</td>") in changes
+    assert "s2 → s3: not co-registered (only 4 inlier matches (need 25)); no change measured." in summary
+
+
+def test_summary_caps_its_changes_at_the_highest_scores(tmp_path):
+    sessions, comparisons = make_study(tmp_path, names=("a", "b"))
+    cfg = ReportConfig(image_width=200, model_vertices=500, summary_rows=1)
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", cfg).read_text()
+    changes = text[text.index("<table class='data summary-changes'>"):]
+    assert changes[:changes.index("</table>")].count("<tr>") == 2  # header + change 1 (score 3.0)
+    assert "1 more change with lower scores is in the comparisons' changes.csv." in text
+
+
+def test_atlas_with_the_region_grid_is_shown_when_present(tmp_path):
+    s = write_session(tmp_path, "only", "2026-01-01", 0)
+    imwrite_rgb(s.atlas / "regions.png", np.full((ATLAS_H, ATLAS_W, 3), 200, np.uint8))
+    text = build_report("p", [s], [], tmp_path / "r.html", SMALL).read_text()
+    section = text[text.index("id='session-only'"):]
+    assert "alt='atlas with the region grid of session only'" in section
+    assert "Atlas with the standard regions (labelled grid)" in section
+    assert "<a href='session0/atlas/regions.png'>Full-size file</a>" in section
+    assert "<a href='session0/atlas/atlas.png'>Atlas without the grid</a>" in section
+
+
+def test_changes_are_followed_through_the_sessions(tmp_path):
+    """Four sessions, the third pair not registered: each site of s1 → s2 is found again by
+    s2 → s3 (only after s2 → s3's alignment, which turns the frame by 10°), and its size
+    followed; s3 → s4 says why it cannot be followed."""
+    from cystomap.report import followup
+    from cystomap.report.data import load_comparison
+
+    sessions, comparisons = make_study(tmp_path, names=("s1", "s2", "s3", "s4"), registered=(True, True, False))
+    for c in comparisons[:2]:
+        write_findback(c)
+    summaries = [load_comparison(c) for c in comparisons]
+    tracks = followup.follow([(s.name, s.date) for s in sessions], summaries)
+    assert len(tracks) == 2
+    t = tracks[0]
+    assert [p.state for p in t.points] == ["before", "measured", "measured", "not registered"]
+    assert [p.diameter for p in t.points] == [None, 10.1, 12.12, None]
+    assert [p.pair for p in t.points] == ["", "s1 → s2", "s2 → s3", "s3 → s4"]
+    for s in summaries:  # without the alignment the sites are 7 mm apart: no link
+        s.registration.pop("transform_a_to_b", None)
+    assert len(followup.follow([(s.name, s.date) for s in sessions], summaries)) == 4
+    assert followup.follow([(s.name, s.date) for s in sessions[:2]], summaries[:1]) == []
+
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    section = text[text.index("id='followup'"):]
+    section = section[:section.index("</section>")]
+    row = section[section.index("<td>1: left lateral wall</td>"):]
+    row = row[:row.index("</tr>")]
+    assert "change 1</a>, ⌀ 10.1 mm" in row and "change 1</a>, ⌀ 12.1 mm" in row and "not registered" in row
+    assert section.count("<svg") == 2
+    card = text[text.index("id='change-s2-s3-1'"):]
+    card = card[:card.index("</article>")]
+    assert "class='sizeplot'" in card and "Site 1 through the sessions" in card and ">12.1</text>" in card
+    assert "<th>site</th>" in text  # the summary names each change's site
+
+
+def test_3d_views_know_their_centre_for_the_inside_view(three_sessions):
+    _, text = three_sessions
+    data = view_data(text)
+    g = data["geometries"]["g0"]
+    assert g["centre"] == [0.0, 0.0, 0.0] and g["neck"] == [0.0, 0.0, -1.0] and g["anterior"] == [1.0, 0.0, 0.0]
+    for key in data["views"]:
+        assert f"<button type='button' class='cm-inside' data-for='{key}' hidden>View from inside</button>" in text
+
+
+def test_pdf_needs_chromium_and_says_so(tmp_path):
+    from cystomap.errors import StageError
+    from cystomap.report.pdf import pdf_pages, print_pdf
+
+    page = tmp_path / "r.html"
+    page.write_text("<p>x</p>")
+    with pytest.raises(StageError, match=r"needs headless Chromium, and 'no-such-chromium' \(config report\.chromium\)"
+                                         r" is not found: `make browser` installs"):
+        print_pdf(page, tmp_path / "r.pdf", "no-such-chromium")
+    assert not (tmp_path / "r.pdf").exists()
+    pdf = b"%PDF-1.4\n1 0 obj <</Type /Pages /Count 2>>\n2 0 obj <</Type /Page>>\n3 0 obj <</Type/Page>>\n%%EOF\n"
+    assert pdf_pages(pdf) == 2
+    with pytest.raises(StageError, match="not a complete PDF"):
+        pdf_pages(pdf[:-6])
+
+
+def test_templates_autoescape_and_are_packaged(repo):
+    import tomllib
+
+    from cystomap.report import html
+
+    env = html.environment()
+    assert env.autoescape is True
+    names = {p.name for p in (repo / "cystomap/report/templates").iterdir()}
+    assert set(env.list_templates()) == names and {"page.html.j2", "print.css"} <= names
+    data = tomllib.loads((repo / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert data["cystomap.report"] == ["templates/*"]

@@ -2,12 +2,15 @@
 
 The page must load with every network request refused (only file:// is served), log no console
 error, decode every image, and draw every 3-D view: each view's area is screenshot and must
-show the model (many coloured pixels, not a blank canvas). ``make test`` installs chromium;
-without it these tests fail under CI (the ``CI`` variable set) and are skipped elsewhere.
+show the model (many coloured pixels, not a blank canvas); from the inside the wall fills the
+view. report.pdf (rule report_pdf) opens as a PDF of one summary page plus a page per change
+card. ``make test`` installs chromium; without it these tests fail under CI (the ``CI``
+variable set) and are skipped elsewhere.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -181,3 +184,77 @@ def test_the_browser_check_catches_a_broken_report(browser, tmp_path):
     assert found.requests == ["https://example.org/x.png"]
     assert all(state == "failed" for state in found.view_states.values())
     assert all(drawn_share(shot) < 0.08 for shot in found.views.values())
+
+
+def test_phantom_pdf_from_its_rule(phantom_study):
+    """`snakemake results/phantom/report.pdf` prints the finished study's report (without
+    re-making it): one summary page, then a page per change card."""
+    from cystomap.report.pdf import pdf_pages
+
+    exe = chromium_path()
+    html = phantom_study.workdir / "results/phantom/report.html"
+    before = html.stat().st_mtime_ns
+    phantom_study.run("results/phantom/report.pdf", "--config", f"report={{chromium: {exe}}}")
+    pdf = (phantom_study.workdir / "results/phantom/report.pdf").read_bytes()
+    cards = html.read_text().count("<article class='card'")
+    assert html.stat().st_mtime_ns == before
+    assert pdf_pages(pdf) == 1 + cards, (pdf_pages(pdf), cards)
+    logging.getLogger(__name__).info("phantom report.pdf: %d pages, %d cards, %.2f MB", pdf_pages(pdf), cards,
+                                     len(pdf) / 1e6)
+
+
+def test_synthetic_report_prints_a_summary_page_and_a_page_per_card(tmp_path):
+    from test_report import SMALL, make_study, write_findback
+
+    from cystomap.report import build_report
+    from cystomap.report.pdf import pdf_pages, print_pdf
+
+    exe = chromium_path()
+    sessions, comparisons = make_study(tmp_path)  # three sessions, both pairs registered
+    for c in comparisons:
+        write_findback(c)
+    report = build_report("p01", sessions, comparisons, tmp_path / "report.html", SMALL)
+    cards = report.read_text().count("<article class='card'")
+    assert cards == 4
+    assert print_pdf(report, tmp_path / "report.pdf", exe) == 1 + cards
+    assert pdf_pages((tmp_path / "report.pdf").read_bytes()) == 1 + cards
+
+
+def test_a_3d_view_flies_from_the_inside(browser, tmp_path):
+    """The view's "View from inside" puts the camera at the model's centre: the wall fills the
+    view (the outside view shows the sphere on white); the button goes back."""
+    import cv2
+    from test_report import SMALL, make_study
+
+    from cystomap.report import build_report
+
+    sessions, comparisons = make_study(tmp_path, names=("a", "b"))
+    report = build_report("p01", sessions, comparisons, tmp_path / "report.html", SMALL)
+    context = browser.new_context(viewport={"width": 1280, "height": 900}, device_scale_factor=1)
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    shots = {}
+    try:
+        page.goto(report.resolve().as_uri(), wait_until="load")
+        view = page.locator(".cm-3d[data-view='s0']")
+        view.scroll_into_view_if_needed()
+        page.wait_for_function("e => e.getAttribute('data-state') === 'drawn'", arg=view.element_handle(),
+                               timeout=90_000)
+        button = page.locator(".cm-inside[data-for='s0']")
+        for camera, label in (("outside", "View from inside"), ("inside", "View from outside"),
+                              ("outside", "View from inside")):
+            if shots:
+                button.click()
+            page.wait_for_function(f"e => e.getAttribute('data-camera') === '{camera}'",
+                                   arg=view.element_handle(), timeout=30_000)
+            page.wait_for_timeout(300)
+            assert button.is_visible() and button.text_content() == label
+            png = view.screenshot()
+            shots[len(shots)] = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    finally:
+        context.close()
+    assert not errors, errors
+    share = {k: drawn_share(v) for k, v in shots.items()}
+    assert share[1] > 0.97 and share[0] < 0.45 and share[2] < 0.45, share  # measured 0.99, 0.23, 0.23

@@ -43,3 +43,14 @@ def test_snakemake_report_holds_atlases_change_maps_and_tables(phantom_study, tm
     assert files["texture.png"] == 0  # only the files named by the patterns
     for caption in CAPTIONS:
         assert caption in main, caption
+
+
+def test_report_pdf_is_a_default_target_only_when_asked(workflow_factory):
+    """report.pdf needs Chromium, so `snakemake` (and `make run`) plans it only with report.pdf: true."""
+    from conftest import phantom_config
+
+    wf = workflow_factory(phantom_config())
+    jobs = wf.planned_jobs()
+    assert jobs["report"] == 1 and "report_pdf" not in jobs
+    wf.write_config({**phantom_config(), "report": {"pdf": True}})
+    assert wf.planned_jobs()["report_pdf"] == 1  # the explicit target: test_report_browser.py

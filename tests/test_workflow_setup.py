@@ -41,8 +41,10 @@ def test_rule_threads_flow_into_the_stage() -> None:
     for name, (threads, script) in keyed.items():
         section, key = re.match(r'config\["(\w+)"\]\["(\w+)"\]', threads).groups()
         text = script.read_text()
-        assert re.search(rf'with_threads\([^\n]*sm\.params\.{section}\b[^\n]*"{key}", sm\.threads\)', text), (
-            f"rule {name}: {script.name} does not give the stage its job's threads ({section}.{key})")
+        tail = ")" if key == "threads" else f', "{key}")'
+        helper = 'job_config(' in text and f'sm.params.{section}, "{section}", sm.threads{tail}' in text
+        given = helper or re.search(rf'with_threads\([^\n]*sm\.params\.{section}\b[^\n]*"{key}", sm\.threads\)', text)
+        assert given, f"rule {name}: {script.name} does not give the stage its job's threads ({section}.{key})"
     for name, (threads, _) in rules.items():
         if name not in keyed:
             assert threads.strip() in ("1", "2"), name
@@ -54,6 +56,14 @@ def test_with_threads_sets_the_key() -> None:
     section = {"threads": 2, "other": 1}
     assert with_threads(section, "threads", 1) == {"threads": 1, "other": 1}
     assert section["threads"] == 2  # the config itself is left alone
+
+
+def test_job_config_gives_the_stage_the_job_threads() -> None:
+    from cystomap.frames import FramesConfig
+    from cystomap.snakemake_io import job_config
+
+    cfg = job_config(FramesConfig, {"threads": 2, "max_frames": 9}, "frames", 1)
+    assert cfg.threads == 1 and cfg.max_frames == 9
 
 
 def test_constraints_pin_every_direct_dependency_at_the_installed_version() -> None:

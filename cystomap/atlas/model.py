@@ -56,7 +56,7 @@ def uv_unwrap(
     vertices: np.ndarray, faces: np.ndarray, proj: Projection, meridian_step_deg: float = 15.0
 ) -> TexturedMesh:
     """Cut the mesh at the seam, the poles and every ``meridian_step_deg``; assign atlas UVs."""
-    from cystomap.mesh import vertex_normals
+    from cystomap.geometry.trimesh import vertex_normals
 
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from cystomap.geometry.raycast import MeshRays
+
 PROJECTIONS = ("equirectangular", "equal_area")
 
 
@@ -146,38 +148,8 @@ class Projection:
                    np.asarray(meta.get("axes", np.eye(3)), float))
 
 
-class SurfaceRays:
-    """Ray queries on a triangle mesh (open3d RaycastingScene, float32 about an origin)."""
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray,
-                 origin: np.ndarray | None = None) -> None:
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.vertices = np.asarray(vertices, dtype=np.float64)
-        self.faces = np.asarray(faces, dtype=np.int64)
-        self.origin = self.vertices.mean(axis=0) if origin is None else np.asarray(origin, float)
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor((self.vertices - self.origin).astype(np.float32)),
-            o3d.core.Tensor(self.faces.astype(np.uint32)))
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        n = np.cross(b - a, c - a)
-        self.face_normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-    def cast(self, origins: np.ndarray, directions: np.ndarray,
-             nthreads: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Hit distance along unit ``directions`` (inf if none) and face index (-1 if none)."""
-        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-        o = np.broadcast_to(np.asarray(origins, dtype=np.float64) - self.origin, d.shape)
-        rays = np.hstack([o, d]).astype(np.float32)
-        ans = self.scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=nthreads)
-        t = ans["t_hit"].numpy().astype(np.float64)
-        tri = ans["primitive_ids"].numpy().astype(np.int64)
-        miss = ~np.isfinite(t)
-        tri[miss] = -1
-        t[miss] = np.inf
-        return t, tri
+#: ray queries on the wall mesh (the core wrapper, under the atlas's name)
+SurfaceRays = MeshRays
 
 
 def pixel_to_point(

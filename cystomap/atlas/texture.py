@@ -30,44 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
+from cystomap.atlas.config import AtlasConfig
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.errors import InputError
 from cystomap.images import sample_bilinear
+from cystomap.io.views import View
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class View:
-    """One registered frame: world→camera pose, intrinsics and the colour image file."""
-
-    name: str
-    rotation: np.ndarray  # (3, 3) world → camera
-    translation: np.ndarray  # (3,)
-    K: np.ndarray  # (3, 3) for the colour image's pixel grid
-    width: int
-    height: int
-    path: Path
-
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.rotation.T @ self.translation
-
-    def to_camera(self, points: np.ndarray) -> np.ndarray:
-        return points @ self.rotation.T + self.translation
-
-
-@dataclass(frozen=True)
-class TextureSettings:
-    """The knobs of texturing (filled from AtlasConfig)."""
-
-    min_cos_incidence: float
-    weight_cos_power: float
-    weight_distance_power: float
-    weight_sharpness_power: float
-    edge_feather_px: float
-    occlusion_scale: float
-    occlusion_tolerance: float
+#: the knobs of texturing (min_cos_incidence, weight_*_power, edge_feather_px, occlusion_*)
+#: are the atlas settings themselves
+TextureSettings = AtlasConfig
 
 
 class WallSamples:

@@ -40,7 +40,7 @@ class ViewSet:
 
     @classmethod
     def load(cls, sfm_dir: Path, preprocessed_dir: Path) -> ViewSet:
-        from cystomap.atlas.stage import load_views
+        from cystomap.io.views import load_views
 
         views, mask = load_views(Path(sfm_dir), Path(preprocessed_dir))
         return cls(views, mask, {})

@@ -22,7 +22,7 @@ import numpy as np
 
 from cystomap.camera import colmap_to_opencv_xy, opencv_calibration
 from cystomap.errors import InputError
-from cystomap.mesh import load_reconstruction
+from cystomap.io.colmap import load_reconstruction, world_to_camera
 
 log = logging.getLogger(__name__)
 
@@ -129,9 +129,7 @@ def collect_observations(
         cam = rec.cameras[im.camera_id]
         k = opencv_calibration(cam, *wh)
         sx, sy = wh[0] / cam.width, wh[1] / cam.height
-        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        rot = np.asarray(cfw.rotation.matrix(), dtype=np.float64)
-        t = np.asarray(cfw.translation, dtype=np.float64).reshape(3)
+        rot, t = world_to_camera(im)
         rows, xy = [], []
         for p2 in im.points2D:
             if p2.has_point3D():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ from cystomap.evaluate.truth import (
     sample_surface,
 )
 from cystomap.images import sample_bilinear
+from cystomap.outputs import read_json_object
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +78,7 @@ def seen_at(truth: Truth, points: np.ndarray) -> np.ndarray:
 
 
 def read_atlas_json(atlas_dir: Path) -> dict[str, Any]:
-    path = atlas_dir / "atlas.json"
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: cannot read JSON ({exc})") from exc
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return data
+    return read_json_object(atlas_dir / "atlas.json")
 
 
 def score_atlas(

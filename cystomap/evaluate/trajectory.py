@@ -10,7 +10,7 @@ import json
 import logging
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,34 +19,15 @@ import numpy as np
 from cystomap.errors import InputError
 from cystomap.evaluate.config import EvalConfig
 from cystomap.evaluate.truth import Truth
+from cystomap.geometry.sim3 import Similarity
+from cystomap.geometry.sim3 import umeyama as _umeyama
+from cystomap.io.colmap import camera_centres, model_dirs, read_model
 
 log = logging.getLogger(__name__)
 
-MODEL_FILES = ("cameras", "images", "points3D")
 
-
-@dataclass(frozen=True)
-class Sim3:
-    """x ↦ scale · rotation · x + translation."""
-
-    scale: float = 1.0
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
-    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        pts = np.asarray(points, dtype=np.float64)
-        return self.scale * pts @ self.rotation.T + self.translation
-
-    def inverse(self) -> Sim3:
-        r_inv = self.rotation.T
-        return Sim3(1.0 / self.scale, r_inv, -(r_inv @ self.translation) / self.scale)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "scale": float(self.scale),
-            "rotation": self.rotation.tolist(),
-            "translation": self.translation.tolist(),
-        }
+#: the evaluation's name for the pipeline's one similarity transform
+Sim3 = Similarity
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
@@ -54,17 +35,10 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
         raise ValueError(f"umeyama needs two Nx3 arrays, N >= 3; got {src.shape}, {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    u, d, vt = np.linalg.svd(cov)
-    sign = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[2, 2] = -1
-    rot = u @ sign @ vt
-    var_s = (xs**2).sum() / len(src)
-    scale = float(np.trace(np.diag(d) @ sign) / var_s) if with_scale and var_s > 0 else 1.0
-    return Sim3(scale, rot, mu_d - scale * rot @ mu_s)
+    sim = _umeyama(src, dst, with_scale)
+    if sim is None:
+        raise ValueError("umeyama: the source points are (nearly) coincident")
+    return sim
 
 
 def align(
@@ -116,38 +90,23 @@ def find_models(path: Path) -> list[Path]:
 
     Sorted by name, so the first is the one ``cystomap.mesh.find_model_dir`` picks.
     """
-    if not path.is_dir():
-        return []
-    if _is_model(path):
-        return [path]
-    return sorted(p for p in path.iterdir() if p.is_dir() and _is_model(p))
-
-
-def _is_model(path: Path) -> bool:
-    return all((path / f"{n}.bin").is_file() or (path / f"{n}.txt").is_file() for n in MODEL_FILES)
+    return model_dirs(path)
 
 
 def load_model(path: Path, cfg: EvalConfig) -> Model:
     """Read a COLMAP model with pycolmap; frame index from image names (``cfg.frame_pattern``)."""
-    import pycolmap
-
-    try:
-        rec = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # pycolmap raises plain ValueError/RuntimeError on bad files
-        raise InputError(f"COLMAP model {path}: cannot be read ({exc})") from exc
+    rec = read_model(path, f"COLMAP model {path}")
     pattern = re.compile(cfg.frame_pattern)
-    frames, rots, centres, skipped = [], [], [], []
+    frames, images, skipped = [], [], []
     for image_id in sorted(rec.reg_image_ids()):
         image = rec.image(image_id)
         m = pattern.search(Path(image.name).name)
         if m is None:
             skipped.append(image.name)
             continue
-        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
-        r_cw = np.asarray(pose.rotation.matrix(), dtype=np.float64)
         frames.append(int(m.group(1)))
-        rots.append(r_cw.T)
-        centres.append(-r_cw.T @ np.asarray(pose.translation, dtype=np.float64))
+        images.append(image)
+    rotations, centres = camera_centres(images)
     if skipped:
         log.warning("%s: %d image name(s) without a frame index (pattern %r), e.g. %s",
                     path, len(skipped), cfg.frame_pattern, skipped[0])
@@ -165,8 +124,8 @@ def load_model(path: Path, cfg: EvalConfig) -> Model:
     return Model(
         path=path,
         frames=frames_arr,
-        rotations=np.asarray(rots, dtype=np.float64).reshape(-1, 3, 3),
-        centres=np.asarray(centres, dtype=np.float64).reshape(-1, 3),
+        rotations=rotations,
+        centres=centres,
         n_images=int(rec.num_images()),
         n_points3d=int(rec.num_points3D()),
         reprojection_error_px=reproj,

@@ -7,7 +7,6 @@ A truth directory holds ``truth.json``, ``poses.csv``, ``camera.json``, ``surfac
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -20,6 +19,10 @@ import pandas as pd
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError
+from cystomap.geometry.raycast import MeshRays
+from cystomap.geometry.trimesh import triangle_areas
+from cystomap.io.ply import read_mesh as read_triangle_mesh
+from cystomap.outputs import read_json_object
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +43,7 @@ class Mesh:
 
     @property
     def triangle_areas(self) -> np.ndarray:
-        a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
-        return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        return triangle_areas(self.vertices, self.triangles)
 
 
 @dataclass(frozen=True)
@@ -133,12 +135,7 @@ def load_truth(directory: str | Path) -> Truth:
     meta_path = directory / "truth.json"
     if not meta_path.is_file():
         raise InputError(f"truth file {meta_path} not found (is {directory} a truth directory?)")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"{meta_path}: cannot read JSON ({exc})") from exc
-    if not isinstance(meta, dict):
-        raise InputError(f"{meta_path}: expected a JSON object")
+    meta = read_json_object(meta_path)
     missing = [k for k in TRUTH_KEYS if k not in meta]
     if missing:
         raise InputError(f"{meta_path}: missing key(s) {', '.join(missing)}")
@@ -191,16 +188,7 @@ def read_csv(path: Path, required: tuple[str, ...]) -> pd.DataFrame:
 
 def read_mesh(path: Path) -> Mesh:
     """Triangles of a PLY (or other open3d-readable) mesh; InputError if unreadable or empty."""
-    import open3d as o3d
-
-    if not path.is_file():
-        raise InputError(f"mesh {path} not found")
-    mesh = o3d.io.read_triangle_mesh(str(path))
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(mesh.triangles, dtype=np.int64)
-    if len(v) == 0 or len(f) == 0:
-        raise InputError(f"mesh {path}: no triangles (not a triangle mesh, or unreadable)")
-    return Mesh(v, f)
+    return Mesh(*read_triangle_mesh(path))
 
 
 def read_equirect(path: Path, grey: bool = False) -> np.ndarray:
@@ -265,37 +253,10 @@ def sample_surface(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
     return a + u[:, None] * (b - a) + v[:, None] * (c - a)
 
 
-class SurfaceQuery:
+class SurfaceQuery(MeshRays):
     """Distances to, and rays onto, a mesh (open3d RaycastingScene, float32 about ``origin``)."""
 
     def __init__(self, mesh: Mesh, origin: np.ndarray | None = None) -> None:
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        super().__init__(mesh.vertices, mesh.triangles,
+                         np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64))
         self.mesh = mesh
-        tmesh = o3d.t.geometry.TriangleMesh()
-        tmesh.vertex.positions = o3d.core.Tensor((mesh.vertices - self.origin).astype(np.float32))
-        tmesh.triangle.indices = o3d.core.Tensor(mesh.triangles.astype(np.int32))
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(tmesh)
-
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        pts = (np.asarray(points, dtype=np.float64) - self.origin).astype(np.float32)
-        return self.scene.compute_distance(self._o3d.core.Tensor(pts)).numpy().astype(np.float64)
-
-    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Hit distance (inf if none) and triangle index (-1 if none) of rays from ``origin``."""
-        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-        rays = np.hstack([np.broadcast_to(origin - self.origin, d.shape), d]).astype(np.float32)
-        ans = self.scene.cast_rays(self._o3d.core.Tensor(rays))
-        t = ans["t_hit"].numpy().astype(np.float64)
-        tri = ans["primitive_ids"].numpy().astype(np.int64)
-        tri[~np.isfinite(t)] = -1
-        return t, tri
-
-    def triangle_normals(self, tri: np.ndarray) -> np.ndarray:
-        m = self.mesh
-        a, b, c = (m.vertices[m.triangles[tri, i]] for i in range(3))
-        n = np.cross(b - a, c - a)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

@@ -12,9 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 from cystomap.camera import Camera
+from cystomap.phantom.cubemap import CubeMap
 from cystomap.phantom.geometry import Bladder, az_el, direction
 from cystomap.phantom.render import project_points, rotate
-from cystomap.phantom.texture import CubeMap, cast, interpolate_hit
+from cystomap.phantom.wall_rays import cast, interpolate_hit
 
 BLOCK = 16
 

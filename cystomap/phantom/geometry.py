@@ -195,14 +195,9 @@ class Bladder:
 
     def scene(self):  # -> o3d.t.geometry.RaycastingScene
         """A raycasting scene of wall + tube (geometry id 0; primitive ids = triangle rows)."""
-        import open3d as o3d
+        from cystomap.geometry.raycast import scene_of
 
-        scene = o3d.t.geometry.RaycastingScene()
-        mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(self.triangles.astype(np.int32))
-        scene.add_triangles(mesh)
-        return scene
+        return scene_of(self.vertices, self.triangles)
 
 
 def _ring_dirs(psi: np.ndarray, phi: np.ndarray) -> np.ndarray:

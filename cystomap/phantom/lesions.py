@@ -29,8 +29,9 @@ import numpy as np
 
 from cystomap.errors import InputError
 from cystomap.phantom.config import PhantomConfig
+from cystomap.phantom.cubemap import MARGIN, CubeMap, _face_grid, face_dirs
 from cystomap.phantom.geometry import STREAM_LESIONS, Bladder, az_el, direction, rng, unit
-from cystomap.phantom.texture import MARGIN, CubeMap, _face_grid, cast, face_dirs, interpolate_hit
+from cystomap.phantom.wall_rays import cast, interpolate_hit
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,9 @@ import numpy as np
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError
+from cystomap.phantom.cubemap import CubeMap
 from cystomap.phantom.geometry import Bladder, unit
-from cystomap.phantom.texture import CubeMap, cast
+from cystomap.phantom.wall_rays import cast
 
 GAMMA = 2.2
 EXPOSURE_TARGET = 0.55  # 60th percentile of exposure * E * V

@@ -7,7 +7,7 @@ import logging
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -16,6 +16,7 @@ import numpy as np
 from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
+from cystomap.io.ply import write_ply
 from cystomap.outputs import atomic_dir, write_json
 from cystomap.phantom.atlas import Atlas
 from cystomap.phantom.config import PhantomConfig
@@ -29,6 +30,7 @@ from cystomap.phantom.geometry import (
     wall_bbox,
     wall_extent,
 )
+from cystomap.phantom.lens import lens_truth, render_camera
 from cystomap.phantom.lesions import (
     aperture_cone,
     lesion_rows,
@@ -46,8 +48,9 @@ from cystomap.phantom.render import (
     pixel_rays,
     rotate,
 )
-from cystomap.phantom.texture import build_mucosa, cast
+from cystomap.phantom.texture import build_mucosa
 from cystomap.phantom.trajectory import Trajectory, make_trajectory
+from cystomap.phantom.wall_rays import cast
 
 log = logging.getLogger(__name__)
 
@@ -152,34 +155,6 @@ def _motion_blur(cfg: PhantomConfig, camera: Camera, traj: Trajectory, centre_t:
     return length, np.arctan2(vel[:, 1], vel[:, 0])
 
 
-def _write_ply(path: Path, vertices: np.ndarray, normals: np.ndarray, colors: np.ndarray,
-               triangles: np.ndarray) -> None:
-    vdt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
-                    ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    v = np.empty(len(vertices), vdt)
-    for i, k in enumerate(("x", "y", "z")):
-        v[k] = vertices[:, i]
-        v["n" + k] = normals[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        v[k] = colors[:, i]
-    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
-    f = np.empty(len(triangles), fdt)
-    f["n"] = 3
-    f["i"] = triangles
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment cystomap phantom wall, mm\n"
-        f"element vertex {len(v)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property float nx\nproperty float ny\nproperty float nz\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(v.tobytes())
-        fh.write(f.tobytes())
-
-
 def _write_poses(path: Path, traj: Trajectory) -> None:
     q = _quaternions(traj.rotations)
     with open(path, "w", newline="") as fh:
@@ -195,49 +170,6 @@ def _write_lesions(path: Path, rows: list[dict]) -> None:
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in r.items()})
-
-
-def render_camera(cfg: PhantomConfig, camera: Camera) -> Camera:
-    """The lens the phantom is rendered with: ``camera`` with k1 replaced by ``cfg.lens_k1``
-    (when set; the pinhole part, e.g. the focal length of a ``diagonal_fov_deg``-only camera,
-    is kept). It is the truth (camera.json), hence calibrated."""
-    if cfg.lens_k1 is None:
-        return camera
-    cam = replace(camera, dist=(float(cfg.lens_k1), *camera.dist[1:]), calibrated=True)
-    if camera.calibrated and camera.dist != cam.dist:
-        log.warning("phantom: lens_k1 %.4g overrides k1 %.4g of the calibrated camera %r: the"
-                    " pipeline is given a calibration that differs from the rendered lens",
-                    cfg.lens_k1, camera.dist[0], camera.name)
-    return cam
-
-
-def corner_fov_deg(camera: Camera) -> float:
-    """True diagonal field of view (deg): the angle between the rays of two opposite corners."""
-    corners = np.array([[-0.5, -0.5], [camera.width - 0.5, camera.height - 0.5]])
-    if camera.has_distortion:
-        und = cv2.undistortPoints(corners.reshape(-1, 1, 2), camera.K, camera.dist_array,
-                                  None, None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
-                                                     100, 1e-14)).reshape(-1, 2)
-    else:
-        und = (corners - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
-    d = np.concatenate([und, np.ones((2, 1))], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return float(np.degrees(np.arccos(np.clip(d[0] @ d[1], -1, 1))))
-
-
-def lens_truth(cfg: PhantomConfig, given: Camera, rendered: Camera) -> dict:
-    """truth.json ``lens``: the rendered lens against the camera the study was given."""
-    return {
-        "k1_override": cfg.lens_k1,
-        "rendered": rendered.to_dict(),
-        "given": given.to_dict(),
-        "given_is_rendered": given.calibrated and given.dist == rendered.dist
-        and given.K.tolist() == rendered.K.tolist(),
-        "diagonal_fov_deg_true": round(corner_fov_deg(rendered), 4),
-        "note": "camera.json = the rendered lens (OpenCV model); 'given' = the cameras: entry the"
-                " pipeline is told (diagonal_fov_deg only: uncalibrated, pinhole guess);"
-                " diagonal_fov_deg_true = angle between the rays of opposite image corners",
-    }
 
 
 def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Camera) -> Path:
@@ -351,8 +283,9 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         camera.save(tmp / "camera.json")
         nw = bladder.n_wall_verts
         vcol, _ = cube.sample(bladder.material[:nw])
-        _write_ply(tmp / "surface.ply", bladder.vertices[:nw], bladder.normals[:nw],
-                   np.clip(vcol + 0.5, 0, 255).astype(np.uint8), bladder.wall_triangles)
+        write_ply(tmp / "surface.ply", bladder.vertices[:nw], bladder.wall_triangles,
+                  normals=bladder.normals[:nw], colors=np.clip(vcol + 0.5, 0, 255).astype(np.uint8),
+                  comment="cystomap phantom wall, mm")
         albedo = atlas.albedo(cube)
         cv2.imwrite(str(tmp / "albedo.png"), cv2.cvtColor(albedo, cv2.COLOR_RGB2BGR))
         seen_img = (seen.reshape(atlas.h, atlas.w) * 255).astype(np.uint8)

@@ -76,7 +76,7 @@ def _waypoints(sign: float) -> tuple[np.ndarray, list[str]]:
 
 
 def _wall_radius(scene, bladder: Bladder, u: np.ndarray) -> np.ndarray:
-    from cystomap.phantom.texture import cast
+    from cystomap.phantom.wall_rays import cast
 
     t = cast(scene, np.broadcast_to(bladder.barycentre, u.shape), u)["t_hit"]
     return np.where(np.isfinite(t), t, np.nanmedian(np.where(np.isfinite(t), t, np.nan)))

@@ -25,6 +25,17 @@ class ReportConfig:
     # Per comparison, at most this many changes (the highest scores) get a card with the
     # crops and frames compare found them back in (findback.csv, findback/).
     max_change_cards: int = 20
+    # The summary (the first page of the printed report and of report.pdf) lists at most this
+    # many changes: the highest scores of all comparisons (the rest are counted); about 30 rows
+    # fit on its A4 page next to five sessions.
+    summary_rows: int = 20
+    # report.pdf (rule report_pdf: the summary page, then a page per change card) for every
+    # subject among the workflow's default targets. It needs headless Chromium (`make browser`
+    # installs Debian's); without it the rule fails naming what is missing. Off: a fresh machine's
+    # `make run` needs no browser; `snakemake results/{subject}/report.pdf` makes one on request.
+    pdf: bool = False
+    # The Chromium executable for report.pdf (a name on PATH or a path).
+    chromium: str = "chromium"
 
     def __post_init__(self) -> None:
         checks = {
@@ -33,6 +44,8 @@ class ReportConfig:
             "500 <= model_vertices <= 1000000": 500 <= self.model_vertices <= 1_000_000,
             "max_table_rows >= 1": self.max_table_rows >= 1,
             "max_change_cards >= 0": self.max_change_cards >= 0,
+            "summary_rows >= 1": self.summary_rows >= 1,
+            "chromium is not empty": bool(self.chromium.strip()),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

@@ -1,7 +1,7 @@
 """What the report shows, read from the stage outputs of one subject.
 
 Every figure comes from a file a stage wrote (``frames.json``, ``sfm/quality.json``,
-``mesh.json``, ``atlas.json``, ``registration.json``, ``compare.json``, ``changes.csv``,
+``mesh.json``, ``atlas.json`` (with its regions), ``registration.json``, ``compare.json``, ``changes.csv``,
 ``findback.csv``). A
 missing or unreadable JSON file leaves its figures empty ("—" in the report) with a warning,
 so one damaged summary does not hide the rest; missing images are an error.
@@ -89,6 +89,13 @@ class SessionSummary:
     units: str = "model units"
     scale_source: str = "unknown"
     inputs: SessionInputs | None = None
+    # atlas.json "regions": per standard region its wall area and seen share (% of its area);
+    # empty for atlases written before the regions
+    regions: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def seen(self, region: str) -> float | None:
+        """Seen share (%) of a standard region, None when unknown."""
+        return _num(self.regions.get(region, {}).get("seen_percent"))
 
     @property
     def registered_share(self) -> float | None:
@@ -137,6 +144,8 @@ def load_session(inputs: SessionInputs) -> SessionSummary:
     s.contributing = _int(fr.get("contributing"))
     if isinstance(mesh.get("watertight"), bool):
         s.watertight = mesh["watertight"]
+    regions = atlas.get("regions") if isinstance(atlas.get("regions"), dict) else {}
+    s.regions = {str(k): v for k, v in regions.items() if isinstance(v, dict)}
     return s
 
 
@@ -162,6 +171,7 @@ class ComparisonSummary:
     compared_share: float | None = None
     changes: list[dict[str, Any]] = field(default_factory=list)
     findback: list[dict[str, Any]] = field(default_factory=list)  # rows of findback.csv
+    registration: dict[str, Any] = field(default_factory=dict)  # registration.json
 
     @property
     def key(self) -> str:
@@ -178,6 +188,7 @@ def load_comparison(inputs: ComparisonInputs) -> ComparisonSummary:
         raise InputError(f"comparison {inputs.a} vs {inputs.b}: {d} not found")
     c = ComparisonSummary(inputs.a, inputs.b, d)
     reg = read_json(d / "registration.json")
+    c.registration = reg
     summary = read_json(d / "compare.json")
     c.registered = bool(reg.get("registered", summary.get("registered", False)))
     c.reason = str(reg.get("reason") or summary.get("reason") or "")

@@ -6,8 +6,12 @@ model. Per comparison of consecutive sessions: co-registration, the difference m
 outlined on the atlas and highlighted on the 3-D model, the changes table and a card per change
 (before / after crops of both atlases and of the best frame of each session, and the frames
 that show it, from compare's find-back); when the sessions
-could not be co-registered, the reason and both atlases side by side. A timeline when the
-subject has more than two sessions, and the phantom's scores when an evaluation is given.
+could not be co-registered, the reason and both atlases side by side. A summary for the
+patient record (coverage per session and per standard region, each change with its region, clock
+and distance from the neck; printed with ``print.css`` as one page, followed by a page per card:
+``report.pdf``, :mod:`cystomap.report.pdf`). A timeline when the subject has more than two
+sessions, and each change followed through them (:mod:`cystomap.report.followup`); the phantom's
+scores when an evaluation is given. Each 3-D view can be flown from the inside.
 
 The page opens offline: images are embedded (downsampled to ``image_width``), the 3-D views
 are drawn by plotly.js, inlined once from the ``plotly`` package.
@@ -28,7 +32,7 @@ from cystomap.atlas.model import read_glb
 from cystomap.atlas.projection import Projection
 from cystomap.errors import InputError
 from cystomap.outputs import atomic_file
-from cystomap.report import html, media, model3d
+from cystomap.report import followup, html, media, model3d
 from cystomap.report.config import ReportConfig
 from cystomap.report.data import (
     ComparisonInputs,
@@ -78,13 +82,18 @@ def build_report(
         if missing:
             raise InputError(f"report {subject}: comparison {c.a} vs {c.b} names unknown session(s) {missing}")
         comparison_pages.append(_comparison_page(k, c, summaries, out_html.parent, cfg, views, geometries))
+    tracks = followup.follow([(s.name, s.date) for s in sessions], [c.summary for c in comparison_pages])
+    for c in comparison_pages:
+        for card in c.cards:
+            card.track = followup.track_of(tracks, f"{c.summary.a} → {c.summary.b}", card.change)
     plotly_js = ""
     if views["views"]:
         import plotly.offline
 
         plotly_js = plotly.offline.get_plotlyjs()
     page = html.Page(subject, session_pages, comparison_pages, views, plotly_js,
-                     evaluation_tables(read_json(evaluation)) if evaluation else [], _version())
+                     evaluation_tables(read_json(evaluation)) if evaluation else [], _version(), tracks,
+                     cfg.summary_rows)
     text = html.render(page)
     with atomic_file(out_html) as tmp:
         tmp.write_text(text, encoding="utf-8")
@@ -115,11 +124,15 @@ def _session_page(i: int, s: SessionInputs, summary: SessionSummary, base: Path,
                   views: dict[str, Any], geometries: dict[str, model3d.Geometry]) -> html.SessionPage:
     atlas_dir = Path(s.atlas)
     atlas_png, coverage_png = atlas_dir / "atlas.png", atlas_dir / "coverage.png"
+    regions_png = atlas_dir / "regions.png"  # the atlas with the region grid (atlases since the anatomy)
     for p in (atlas_png, coverage_png):
         if not p.is_file():
             raise InputError(f"report: session {s.name}: {p} not found")
     atlas_rgba = media.read_rgba(atlas_png)
-    atlas_img = media.embed_array(media.over(atlas_rgba), cfg.image_width, cfg.jpeg_quality, atlas_png)
+    if regions_png.is_file():
+        atlas_img = media.embed_file(regions_png, cfg.image_width, cfg.jpeg_quality)
+    else:
+        atlas_img = media.embed_array(media.over(atlas_rgba), cfg.image_width, cfg.jpeg_quality, atlas_png)
     coverage_img = media.embed_file(coverage_png, cfg.image_width, cfg.jpeg_quality)
     meta = read_json(atlas_dir / "atlas.json")
     cov = meta.get("coverage") if isinstance(meta.get("coverage"), dict) else {}
@@ -131,14 +144,32 @@ def _session_page(i: int, s: SessionInputs, summary: SessionSummary, base: Path,
         geometry = model3d.load_geometry(Path(s.mesh), cfg.model_vertices)
         gkey = f"g{i}"
         geometries[gkey] = geometry
-        views["geometries"][gkey] = {**geometry.to_json(), "units": summary.units, "session": s.name}
+        views["geometries"][gkey] = {**geometry.to_json(), "units": summary.units, "session": s.name,
+                                     **_inside_camera(meta, proj)}
         textured = media.over(atlas_rgba, UNSEEN_GREY)
         view_key = f"s{i}"
         views["views"][view_key] = model3d.View(gkey, model3d.vertex_colours(geometry, proj, textured)).to_json()
     else:
         log.warning("report: session %s: no 3-D view (mesh or atlas.json missing)", s.name)
     return html.SessionPage(summary, atlas_img, coverage_img, max_views, view_key,
-                            _href(atlas_png, base), _href(coverage_png, base))
+                            _href(atlas_png, base), _href(coverage_png, base),
+                            _href(regions_png, base) if regions_png.is_file() else "")
+
+
+def _inside_camera(meta: dict[str, Any], proj: Projection) -> dict[str, list[float]]:
+    """Where the 3-D view's camera goes from the inside: the model's centre (the anatomical
+    origin, else the atlas barycentre) and, when atlas.json has the anatomical frame, the neck
+    and anterior directions (it looks away from the neck, anterior up)."""
+    anatomy = meta.get("anatomy") if isinstance(meta.get("anatomy"), dict) else {}
+    found = {k: _vector(anatomy.get(k)) for k in ("origin", "neck", "anterior")}
+    out = {k: v for k, v in found.items() if v is not None and k != "origin"}
+    out["centre"] = found["origin"] or [float(v) for v in proj.barycentre]
+    return out
+
+
+def _vector(value: Any) -> list[float] | None:
+    ok = isinstance(value, list) and len(value) == 3 and all(isinstance(x, int | float) for x in value)
+    return [float(x) for x in value] if ok else None
 
 
 def _projection(meta: dict[str, Any], where: Path) -> Projection | None:

@@ -175,4 +175,6 @@ def all_targets():
         targets += [f"results/{subject}/compare/{a}_vs_{b}" for a, b in comparison_pairs(subject)]
     targets += [f"results/{subject}/evaluation.json" for subject in PHANTOM_SUBJECTS]
     targets += [f"results/{subject}/report.html" for subject in SESSIONS["subject"].unique()]
+    if config["report"]["pdf"]:  # needs headless Chromium (rule report_pdf)
+        targets += [f"results/{subject}/report.pdf" for subject in SESSIONS["subject"].unique()]
     return targets

@@ -1,0 +1,259 @@
+"""Painting the atlas from the registered frames (the two passes of the ``atlas`` stage).
+
+First pass (survey): per frame, its depth map of the mesh, sharpness and coarse samples of the
+wall it sees, for the exposure model and the robust per-cell brightness. Second pass: every
+frame adds its exposure-corrected colours to the atlas pixels it sees, two-band blended, glints
+down-weighted; pixels no frame shows free of glints are inpainted.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cystomap.atlas.config import AtlasConfig
+from cystomap.atlas.projection import SurfaceRays
+from cystomap.atlas.texture import (
+    Photometry,
+    View,
+    ViewGeometry,
+    WallSamples,
+    _covariates,
+    brightness_outlier_weight,
+    cell_reference,
+    fit_photometry,
+    glint_weight,
+    load_image,
+    pyramid,
+    sample_mip,
+    sharpness,
+    view_weights,
+)
+from cystomap.errors import InputError
+from cystomap.parallel import ordered_map
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PaintResult:
+    colour: np.ndarray  # (H·W, 3) float RGB 0..255
+    n_views: np.ndarray  # (H·W,) frames seeing each pixel
+    photometry: Photometry
+    contributing: int
+    n_photometric_obs: int
+    n_inpainted: int = 0
+
+
+def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceRays,
+          cfg: AtlasConfig) -> PaintResult:
+    """Two passes over the frames: exposure model from the overlaps, then blending."""
+    settings = cfg.texture_settings()
+    geo = ViewGeometry(mask, settings)
+    n_px = len(wall.hit)
+    cells = np.flatnonzero(wall.hit[wall.cell_pixel])
+    cell_px = wall.cell_pixel[cells]
+    cell_size = np.where(np.isfinite(wall.cell_radius[cells]), wall.cell_radius[cells], 0) * 1.4
+
+    def read(view: View) -> np.ndarray:
+        img = load_image(view.path)
+        if img.shape[:2] != mask.shape:
+            raise InputError(f"{view.path}: size {img.shape[1]}x{img.shape[0]} differs from the "
+                             f"mask {mask.shape[1]}x{mask.shape[0]}")
+        return img
+
+    def with_glint_weight(img: np.ndarray) -> np.ndarray:
+        """BGR + a 4th channel: the glint weight (255 everywhere when glint_rel is 0)."""
+        import cv2
+
+        bgra = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
+        if cfg.glint_rel > 0:
+            bgra[..., 3] = glint_weight(img, mask, cfg.glint_rel)
+        return bgra
+
+    # decoded frames (with their glint weight) are kept for pass 2 when they fit the budget
+    cache = mask.size * 4 * len(views) <= cfg.frame_cache_mb * 2**20
+
+    # ---- pass 1: depth maps, sharpness, coarse observations for the exposure model
+    def survey(i: int) -> dict[str, Any]:
+        view = views[i]
+        img = read(view)
+        depth = geo.depth_map(view, rays)
+        out: dict[str, Any] = {"depth": depth, "sharp": sharpness(img, mask)}
+        img4 = with_glint_weight(img)
+        if cache:
+            out["image"] = img4
+        o = geo.observe(view, wall, cell_px, depth)
+        ok = o["ok"]
+        if ok.any():
+            oo = {k: a[ok] for k, a in o.items()}
+            level = np.log2(np.maximum(view.K[0, 0] * cell_size[ok] / oo["dist"], 1.0))
+            bgrw = sample_mip(pyramid(img4, 6), oo["u"], oo["v"], level)
+            grey = (bgrw[:, 0] + bgrw[:, 1] + bgrw[:, 2]) / 3
+            out.update(cell=cells[ok], obs=oo, logi=np.log(grey + 1.0),
+                       w=view_weights(oo, view, settings, 1.0, 1.0) * bgrw[:, 3] / 255.0)
+        return out
+
+    t0 = time.perf_counter()
+    surveys = list(ordered_map(survey, range(len(views)), cfg.threads))
+    depths = [sv["depth"] for sv in surveys]
+    images = [sv.pop("image", None) for sv in surveys]
+    sharp = np.array([sv["sharp"] for sv in surveys])
+    observed = [i for i, sv in enumerate(surveys) if "cell" in sv]
+    log.info("pass 1 (depth maps, exposure samples) over %d frames: %.1f s", len(views),
+             time.perf_counter() - t0)
+    dist_ref = (float(np.median(np.concatenate([surveys[i]["obs"]["dist"] for i in observed])))
+                if observed else 1.0)
+    med_sharp = float(np.median(sharp[sharp > 0])) if (sharp > 0).any() else 1.0
+    sharp_rel = np.clip(sharp / max(med_sharp, 1e-12), 0.1, 4.0)
+    n_obs = int(sum(len(surveys[i]["cell"]) for i in observed))
+    n_cells = len(wall.cell_pixel)
+    photometry = Photometry.identity(len(views), dist_ref)
+    ref_px: np.ndarray | None = None  # robust log brightness of each coarse cell
+    if n_obs:
+        o_cell = np.concatenate([surveys[i]["cell"] for i in observed])
+        o_frame = np.concatenate([np.full(len(surveys[i]["cell"]), i) for i in observed])
+        o_logi = np.concatenate([surveys[i]["logi"] for i in observed]).astype(np.float64)
+        o_cov = np.concatenate([_covariates(surveys[i]["obs"], views[i], dist_ref)
+                                for i in observed]).astype(np.float64)
+        o_w = np.concatenate([surveys[i]["w"] for i in observed]).astype(np.float64) + 1e-6
+        if cfg.exposure != "none":
+            photometry = fit_photometry(o_cell, o_frame, o_logi, o_cov, o_w, len(views),
+                                        dist_ref, illumination=cfg.exposure == "model")
+            log.info("photometry: log gains %.2f…%.2f, beta %s (%d observations)",
+                     photometry.gains.min(), photometry.gains.max(),
+                     np.round(photometry.beta, 3).tolist(), n_obs)
+        if cfg.outlier_rel > 0:
+            ref_px = cell_reference(o_cell, o_frame, o_logi, o_cov, o_w, photometry,
+                                    n_cells).astype(np.float32)
+    del surveys
+    # per pixel: its coarse cell (for the reference brightness and the cell footprint)
+    w_atlas = cfg.width
+    nbx = -(-w_atlas // cfg.block)
+    pix = np.arange(n_px)
+    cell_of = ((pix // w_atlas) // cfg.block) * nbx + (pix % w_atlas) // cfg.block
+    cell_size_px = (np.where(np.isfinite(wall.cell_radius), wall.cell_radius, 0) * 1.4)[cell_of]
+    cell_size_px = cell_size_px.astype(np.float32)
+    del pix
+
+    # ---- pass 2: blend
+    pix_area = wall.area.astype(np.float32)
+
+    def colours(i: int) -> tuple[np.ndarray, ...] | None:
+        view = views[i]
+        img4 = images[i]
+        images[i] = None  # free as we go
+        px = np.sort(wall.candidates(view))  # raster order: cache-friendly gathers/scatters
+        if len(px) == 0:
+            return None
+        o = geo.observe(view, wall, px, depths[i])
+        ok = o["ok"]
+        if not ok.any():
+            return None
+        if img4 is None:
+            img4 = with_glint_weight(read(view))
+        px = px[ok]
+        oo = {k: a[ok] for k, a in o.items()}
+        wt = view_weights(oo, view, settings, float(sharp_rel[i]), dist_ref)
+        # footprint of an atlas pixel in image pixels → pyramid level (anti-aliasing)
+        foot = np.float32(view.K[0, 0]) * np.sqrt(pix_area[px] * np.clip(oo["cos"], 0.05, 1)) \
+            / oo["dist"]
+        level = np.log2(np.maximum(foot, 1.0))
+        coarse = np.log2(np.maximum(np.float32(view.K[0, 0]) * cell_size_px[px] / oo["dist"],
+                                    1.0))
+        pyr = pyramid(img4, int(np.ceil(max(level.max(), coarse.max()))) + 1)
+        bgrw = sample_mip(pyr, oo["u"], oo["v"], level)
+        corr = photometry.correction(i, oo, view)
+        bgr = bgrw[:, :3] * corr[:, None]
+        clean = np.maximum(bgrw[:, 3] / np.float32(255.0), np.float32(1e-3))
+        if ref_px is not None:
+            ref = ref_px[cell_of[px]]
+            known = np.isfinite(ref)
+            lum = sample_mip(pyr, oo["u"][known], oo["v"][known], coarse[known])[:, :3]
+            grey = (lum[:, 0] + lum[:, 1] + lum[:, 2]) / 3
+            ratio = (grey + 1.0) * corr[known] / np.exp(ref[known])
+            clean[known] *= brightness_outlier_weight(ratio, cfg.outlier_rel)
+        wt = wt * clean
+        return px, wt, wt ** np.float32(cfg.detail_power), bgr, clean
+
+    t0 = time.perf_counter()
+    # rows: weight, weight·R, weight·G, weight·B (soft weights, then detail weights)
+    soft_acc = np.zeros((4, n_px), np.float32)
+    det_acc = np.zeros((4, n_px), np.float32)
+    n_views = np.zeros(n_px, np.uint16)
+    best_clean = np.zeros(n_px, np.float32)
+    contributing = 0
+    for res in ordered_map(colours, range(len(views)), cfg.threads):
+        if res is None:
+            continue
+        px, wt, wd, bgr, clean = res
+        contributing += 1
+        n_views[px] += 1
+        best_clean[px] = np.maximum(best_clean[px], clean)
+        for acc, ww in ((soft_acc, wt), (det_acc, wd)):
+            acc[0, px] += ww
+            for ch in range(3):
+                acc[1 + ch, px] += ww * bgr[:, 2 - ch]  # BGR → RGB
+    log.info("pass 2 (blending) over %d frames: %.1f s", len(views), time.perf_counter() - t0)
+    seen = n_views > 0
+    soft = (soft_acc[1:] / np.maximum(soft_acc[0], 1e-30)).T
+    det = (det_acc[1:] / np.maximum(det_acc[0], 1e-30)).T
+    ok_det = seen & (det_acc[0] > 0)
+    det[~ok_det] = soft[~ok_det]
+    if cfg.base_sigma_px > 0 and cfg.detail_power > 1:
+        h, w = cfg.height, cfg.width
+        m = seen.reshape(h, w)
+        low_soft = masked_blur(soft.reshape(h, w, 3), m, cfg.base_sigma_px)
+        low_det = masked_blur(det.reshape(h, w, 3), m, cfg.base_sigma_px)
+        colour = (low_soft + det.reshape(h, w, 3) - low_det).reshape(-1, 3)
+    else:
+        colour = det if cfg.detail_power > 1 else soft
+    colour[~seen] = 0
+    n_inpainted = 0
+    if cfg.inpaint_below > 0:
+        glinted = seen & (best_clean < cfg.inpaint_below)
+        n_inpainted = int(glinted.sum())
+        if n_inpainted:
+            colour = inpaint(colour, glinted, seen, cfg.height, cfg.width)
+    return PaintResult(colour, n_views, photometry, contributing, n_obs, n_inpainted)
+
+
+def inpaint(colour: np.ndarray, holes: np.ndarray, seen: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Fill ``holes`` (flat pixel mask) from the seen pixels around them (Telea, wrapping)."""
+    import cv2
+
+    pad = 16
+    base = colour.copy()
+    if (~seen).any():  # unseen pixels are no source: give them the mean colour, not black
+        base[~seen] = colour[seen & ~holes].mean(axis=0) if (seen & ~holes).any() else 128
+    img = np.clip(np.rint(base), 0, 255).astype(np.uint8).reshape(h, w, 3)
+    holes2 = holes.reshape(h, w).astype(np.uint8)
+    img = cv2.copyMakeBorder(img, 0, 0, pad, pad, cv2.BORDER_WRAP)
+    holes2 = cv2.copyMakeBorder(holes2, 0, 0, pad, pad, cv2.BORDER_WRAP)
+    filled = cv2.inpaint(img, holes2, 5, cv2.INPAINT_TELEA)[:, pad:-pad].reshape(-1, 3)
+    out = colour.copy()
+    out[holes] = filled[holes]
+    return out
+
+
+def masked_blur(img: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Normalised Gaussian blur over ``mask`` (wrapping around in azimuth)."""
+    import cv2
+
+    pad = max(1, math.ceil(3 * sigma))
+    m = mask.astype(np.float32)
+    x = img.astype(np.float32) * m[..., None]
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        a = cv2.copyMakeBorder(a, 0, 0, pad, pad, cv2.BORDER_WRAP)
+        a = cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        return a[:, pad:-pad]
+
+    num = blur(x)
+    den = blur(m)
+    return num / np.maximum(den, 1e-6)[..., None]
