@@ -205,13 +205,13 @@ def _on_sphere(el: float, az: float) -> np.ndarray:
 
 
 def test_neighbouring_lesions_stay_apart(sphere) -> None:
-    """Two 8 mm lesions 3 mm apart, joined by a faint ridge (one cluster at the candidate
+    """Two 8 mm lesions 4 mm apart, joined by a faint ridge (one cluster at the candidate
     level): two regions, each measured as itself (the old merge of pieces closer than
-    merge_mm made them one region between them). Lesions of about 25 noise units (whitened):
-    their smoothed edges do not reach across the gap."""
+    merge_mm made neighbours one region between them). Lesions of about 50 noise units
+    (whitened; ΔE about 7): their smoothed edges do not reach across the gap."""
     grid = sphere[2]
     pts = np.nan_to_num(grid.points)
-    d, gap = 8.0, 3.0
+    d, gap = 8.0, 4.0
     centres = [_on_sphere(0.2, 0.5), _on_sphere(0.2, 0.5 + (d + gap) / RADIUS / math.cos(0.2))]
     rng = np.random.default_rng(4)
     a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
@@ -227,7 +227,7 @@ def test_neighbouring_lesions_stay_apart(sphere) -> None:
     b[ridge] += 0.015 * (LESION - WALL)
     for c in centres:
         disc = grid.hit & (np.linalg.norm(pts - c, axis=-1) < d / 2)
-        b[disc] = WALL + 0.1 * (LESION - WALL) + rng.normal(0, 2.0, (int(disc.sum()), 3))
+        b[disc] = WALL + 0.2 * (LESION - WALL) + rng.normal(0, 2.0, (int(disc.sum()), 3))
     regions = _detect(sphere, a, b, grid.hit, grid.hit)
     assert len(regions) == 2, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     for c in centres:

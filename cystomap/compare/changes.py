@@ -579,6 +579,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     dropped_neck = 0
     dropped_long = 0
     dropped_weak = 0
+    dropped_faint = 0
     dropped_duplicate = 0
     ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
     flat_sig = sig.ravel()
@@ -710,6 +711,11 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         col, row = proj_full.point_to_pixel(centroid[None])
         mean_sig = float(np.average(flat_sig[pix], weights=a))
         delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
+        if delta_e < cfg.min_delta_e:
+            dropped_faint += 1
+            log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, not "
+                     "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
+            continue
         regions.append(Region(
             id=0, pixels=pix_all, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
             azimuth_deg=az, elevation_deg=el, area_mm2=area,
@@ -742,7 +748,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                 dropped_at_edge=dropped_edge, dropped_inconsistent=dropped_inconsistent,
                 dropped_dark_in_a=dropped_dark, dropped_off_reconstruction=dropped_far,
                 dropped_near_neck=dropped_neck, dropped_elongated=dropped_long,
-                dropped_weak=dropped_weak, dropped_duplicate=dropped_duplicate,
+                dropped_weak=dropped_weak, dropped_faint=dropped_faint,
+                dropped_duplicate=dropped_duplicate,
                 min_area_mm2=min_area, regions=len(regions),
                 score_definition="largest ratio of the region's peak significance or excess mass "
                 "to the level at which false_alarm_rate null regions are expected (> 1)",
@@ -750,10 +757,10 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                 "in the pair without any change (its null)")
     log.info("changes: %d candidate cluster(s) above %.2f (median %.2f + %g x MAD %.2f), "
              "%d above the pair's null at %g expected false region(s); %d region(s); dropped: "
-             "%d too small, %d weak after cleaning, %d at the edge of the compared wall, %d off "
+             "%d too small, %d weak after cleaning, %d faint, %d at the edge of the compared wall, %d off "
              "the reconstruction, %d on an opening in A, %d photo-inconsistent, %d at the "
              "bladder neck, %d elongated", null.info["candidates"], null.level, null.info["median"],
              CANDIDATE_MADS, null.info["mad_sigma"], null.info["flagged"], cfg.false_alarm_rate,
-             len(regions), dropped_small, dropped_weak, dropped_edge, dropped_far, dropped_dark,
+             len(regions), dropped_small, dropped_weak, dropped_faint, dropped_edge, dropped_far, dropped_dark,
              dropped_inconsistent, dropped_neck, dropped_long)
     return regions, info

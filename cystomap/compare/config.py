@@ -110,6 +110,14 @@ class CompareConfig:
     # the smallest change reported: regions smaller than a disc of this diameter (model
     # units) are dropped, whatever their significance (a physical size, not a noise threshold)
     min_diameter_mm: float = 3.0
+    # a change must be visible (a perceptual floor of the change of interest, applied after
+    # the null's decision, not a noise threshold): the mean colour of the region in B differs
+    # from A's (both illumination-matched) by at least this CIE76 ΔE*ab. 2.3 is the
+    # just-noticeable difference, 3.5-5 one an untrained observer notices. The pair's null
+    # alone passes large, smooth photometric residue of low-noise pairs (significant by its
+    # size; ΔE 1.3-3.8 on the phantom pairs), while lesions change their patch (ΔE 4.3-13).
+    # 0 = no check
+    min_delta_e: float = 4.0
     # a piece too weak to be a change on its own within this distance (model units) of
     # another is part of it (fragments of one change); two pieces that are each a change
     # stay apart, whatever their distance
@@ -194,6 +202,7 @@ class CompareConfig:
             "point_support_mm >= 0": self.point_support_mm >= 0,
             "0 < false_alarm_rate <= 100": 0 < self.false_alarm_rate <= 100,
             "min_diameter_mm >= 0": self.min_diameter_mm >= 0,
+            "min_delta_e >= 0": self.min_delta_e >= 0,
             "max_point_distance_mm >= 0": self.max_point_distance_mm >= 0,
             "merge_mm >= 0": self.merge_mm >= 0,
             "gap_fill_mm >= 0": self.gap_fill_mm >= 0,
