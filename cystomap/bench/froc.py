@@ -208,7 +208,7 @@ def plot(summary: list[dict[str, Any]], path: Path) -> None:
     w, h, m = 720, 480, 70
     img = np.full((h, w, 3), 255, np.uint8)
     fps = [r["fp_per_pair"] for r in summary if r["subset"] == "all" and r["fp_per_pair"] is not None]
-    lo_x, hi_x = np.log10(0.01), np.log10(max(3.0, *(f for f in fps if f > 0)) if fps else 3.0)
+    lo_x, hi_x = np.log10(0.01), np.log10(max([3.0, *fps]))
 
     def xy(fp: float, rec: float) -> tuple[int, int]:
         x = (np.log10(max(fp, 0.01)) - lo_x) / (hi_x - lo_x)
