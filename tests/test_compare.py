@@ -197,8 +197,8 @@ def test_mutual_matches_and_msac_recover_a_similarity() -> None:
 def test_config_rejects_bad_values() -> None:
     with pytest.raises(ValueError, match="transform"):
         CompareConfig(transform="affine")
-    with pytest.raises(ValueError, match="threshold_k"):
-        CompareConfig(threshold_k=0)
+    with pytest.raises(ValueError, match="false_alarm_rate"):
+        CompareConfig(false_alarm_rate=0)
 
 
 def test_findback_visits_and_a_crop_across_the_seam() -> None:

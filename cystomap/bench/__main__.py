@@ -10,7 +10,7 @@ from pathlib import Path
 from cystomap.bench.common import write_table
 
 log = logging.getLogger("cystomap.bench")
-SUITES = ("phantom", "pipeline", "compare")
+SUITES = ("phantom", "pipeline", "compare", "froc")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -22,6 +22,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", default="7,8,9",
                         help="phantom seeds scored by the pipeline and compare suites")
     parser.add_argument("--pairs", default="default,deformed,no_change", help="session pairs of the compare suite")
+    parser.add_argument("--froc-pairs", type=int, default=30, help="froc: randomized pairs with lesions")
+    parser.add_argument("--froc-no-change", type=int, default=10, help="froc: randomized pairs without change")
+    parser.add_argument("--froc-size", default="1280x720", help="froc: frame size WxH")
+    parser.add_argument("--froc-frames", type=int, default=124, help="froc: frames per session")
+    parser.add_argument("--froc-rates", default="0.03,0.1,0.3,1",
+                        help="froc: false_alarm_rate operating points")
+    parser.add_argument("--froc-seed", type=int, default=100, help="froc: seed of the first pair")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     suites = args.only or list(SUITES)
@@ -49,6 +56,14 @@ def main(argv: list[str] | None = None) -> None:
                     for row in bench_compare(work, args.repeats, args.pairs.split(","), int(seed))]
             df = write_table(rows, args.out, "compare", "Compare stage on phantom session pairs (1280x720)")
             log.info("compare:\n%s", df.to_string(index=False))
+        if "froc" in suites:
+            from cystomap.bench.froc import bench_froc
+
+            width, height = (int(v) for v in args.froc_size.split("x"))
+            summary = bench_froc(work, args.out, args.froc_pairs, args.froc_no_change, width, height,
+                                 args.froc_frames, tuple(float(r) for r in args.froc_rates.split(",")),
+                                 args.froc_seed)
+            log.info("froc: %d summary rows -> %s", len(summary), args.out / "froc.csv")
 
 
 if __name__ == "__main__":

@@ -1,16 +1,25 @@
-"""Changed regions: threshold from the pair's own noise, clean, measure on the wall.
+"""Changed regions: a decision calibrated on the pair's own null, clean, measure on the wall.
 
-Threshold (``threshold_k``): the per-pixel significance (whitened, smoothed colour
-difference; see :mod:`cystomap.compare.difference`) has a heavy tail even without any change
-(registration jitter of vessels, atlas seams), so no Gaussian quantile is trusted. Its
-robust level on the compared wall is measured instead: ``T = median + k · 1.4826 · MAD``.
-k = 8: spurious regions are kept out by the checks below (visibility, patch shape), so k only
-has to separate candidates from noise (k = 15 missed 5 of 6 lesions on a seed-8 pair whose
-noise tail is heavier; see ``CompareConfig.threshold_k``). Regions start at pixels above
-``T`` and grow over the connected pixels above ``grow_fraction · T`` (hysteresis), are
-cleaned by a morphological closing and opening (``morphology_mm``), pieces closer than
-``merge_mm`` are joined, and a region must be at least the area of a disc of
-``min_diameter_mm``.
+Decision (``false_alarm_rate``, the expected number of false regions per pair): the
+per-pixel significance (whitened, smoothed colour difference; see
+:mod:`cystomap.compare.difference`) has a heavy, pair-specific tail even without any change
+(registration residue of vessels and mottling, photometric residue, atlas seams), so no
+fixed multiple of its noise level is trusted. Instead its connected excursions above a low
+candidate level (median + ``CANDIDATE_MADS`` MADs on the compared wall, joined across the
+azimuth seam) are the candidates; most of them are the pair's noise and form its null
+sample. Each cluster has two statistics, its peak significance (a strong change, however
+small) and the root of its excess mass on the wall, ``sqrt(sum (s - level) · area)`` (a
+faint but large change: a flat, low-contrast patch). For each, an exponential tail is
+fitted to the strongest null clusters (peaks over threshold; the strongest of them enter
+only by their number, right-censored, so that changes among them cannot inflate it); the
+overshoot of a smooth field's maxima and the root of a cluster's excess mass are
+asymptotically exponential. A cluster's ``expected_false`` is 2 × the lesser of its two
+expected null counts (Bonferroni over the two statistics); clusters at most the rate are
+changes. Clusters the null expects fewer than ``PEEL_EXPECTED`` of are taken out of the
+sample and the tails refitted, until nothing changes. The accepted clusters are cleaned by
+a morphological closing and opening (``morphology_mm``), pieces closer than ``merge_mm`` are
+joined, a region must still be unlikely under the null after cleaning, and at least the area
+of a disc of ``min_diameter_mm`` (the smallest change of interest, a physical size).
 
 Checks (each counted in ``compare.json``): the region lies on reconstructed wall (median
 distance to the nearest SfM point of each session ≤ ``max_point_distance_mm``), is mostly
@@ -32,10 +41,9 @@ across the strip. Where a change runs into wall that B saw but A did not
 (``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
 from the surrounding wall's colour to the region's, up to twice the compared part's
 equivalent diameter further): the region is measured as B shows it, and ``observed_share``
-says how much of it was compared. A change must also be visible: the CIE76 ΔE*ab between A's and B's mean
-colours over it at least ``min_delta_e`` (registration residue of fine texture changes single
-pixels, not a patch's mean colour). Regions that end up describing the same wall (both
-pieces of a cut change followed into the gap) are reported once.
+says how much of it was compared (``delta_e``, the CIE76 ΔE*ab between A's and B's mean
+colours over it, is reported, not tested: the null decides). Regions that end up describing
+the same wall (both pieces of a cut change followed into the gap) are reported once.
 
 Measurement: each region's outline is where its significance exceeds half of its own peak
 (99th percentile), the full-width-at-half-maximum outline, holes filled: a blurred disc's
@@ -70,7 +78,8 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "diameter_mm", "mean_difference", "score", "peak_significance",
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "enclosed", "luminance_a", "luminance_b",
-                  "point_distance_mm", "elongation", "observed_share", "delta_e")
+                  "point_distance_mm", "elongation", "observed_share", "delta_e",
+                  "expected_false", "mass")
 
 
 @dataclass
@@ -98,6 +107,8 @@ class Region:
     elongation: float = 1.0  # length / width on the wall (principal axes)
     observed_share: float = 1.0  # share of the area both sessions saw (rest: bridged gap)
     delta_e: float = 0.0  # CIE76 colour difference of the region's mean colours, A vs B
+    expected_false: float = 0.0  # expected number of null regions at least this strong
+    mass: float = 0.0  # excess significance mass above the candidate level (noise units · mm²)
 
     def row(self) -> dict[str, Any]:
         return {"id": self.id, "x": self.x, "y": self.y, "z": self.z,
@@ -112,7 +123,8 @@ class Region:
                 "enclosed": self.enclosed,
                 "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
-                "observed_share": self.observed_share, "delta_e": self.delta_e}
+                "observed_share": self.observed_share, "delta_e": self.delta_e,
+                "expected_false": self.expected_false, "mass": self.mass}
 
 
 def elongation(points: np.ndarray, weights: np.ndarray) -> float:
@@ -198,17 +210,328 @@ def _close_across(mask: np.ndarray, kernel: np.ndarray, compared: np.ndarray,
     return _fill_holes(mask | (closed & ~compared & wall)) & wall
 
 
-def threshold(diff: Difference, k: float) -> tuple[float, dict[str, float]]:
-    """``median + k · 1.4826 · MAD`` of the significance on the jointly seen wall."""
-    return threshold_of(diff.significance[diff.joint], k)
+# --------------------------------------------------------------------------- the pair's null
+
+# candidate clusters are the connected excursions of the significance above
+# median + CANDIDATE_MADS · 1.4826 · MAD on the compared wall: a level the pair's own noise
+# crosses often (about 4 % of a chi(3) field's area), so that its noise clusters are many
+# and their strength distribution can be estimated; it sets what is tested, not what is
+# reported (that is false_alarm_rate's job)
+CANDIDATE_MADS = 2.0
+# the null's tail (generalised Pareto, peaks over threshold) is fitted to the strongest
+# TAIL_SHARE of the null clusters, at least TAIL_MIN of them; the strongest CENSOR_SHARE of
+# those enter the fit only by their number (right-censored: "this many are stronger"), so
+# that changes among them (a few of a pair's clusters, but many of its strongest) cannot
+# make the null's tail heavier than its noise clusters show
+TAIL_SHARE = 0.25
+TAIL_MIN = 20
+CENSOR_SHARE = 0.4
+# clusters the null expects fewer than this many of (or false_alarm_rate, if lower) are taken
+# out of the null sample before it is fitted again: the changes must not inflate their own
+# null, but at a high rate, taking out what the null itself predicts would thin its tail
+# round after round
+PEEL_EXPECTED = 0.1
 
 
-def threshold_of(s: np.ndarray, k: float) -> tuple[float, dict[str, float]]:
-    """``median + k · 1.4826 · MAD`` of the significance values ``s``."""
+@dataclass
+class NullTail:
+    """Expected number of the pair's null (no-change) clusters at least as strong as a value.
+
+    Below ``v`` the count of null clusters is used as is; above it, ``k`` null clusters'
+    excesses follow an exponential tail of scale ``sigma``.
+    """
+
+    stats: np.ndarray  # sorted strengths of the null clusters (ascending)
+    v: float
+    k: int
+    sigma: float
+
+    def expected(self, t: np.ndarray | float) -> np.ndarray:
+        t = np.asarray(t, np.float64)
+        n_above = len(self.stats) - np.searchsorted(self.stats, t, side="left")
+        tail = self.k * np.exp(-np.maximum(t - self.v, 0.0) / self.sigma)
+        return np.where(t > self.v, tail, n_above.astype(np.float64))
+
+    def level(self, rate: float) -> float:
+        """The strength at which ``rate`` null clusters are expected (at or above)."""
+        if self.k <= 0:
+            return float(self.stats[-1]) if len(self.stats) else 0.0
+        return self.v - self.sigma * math.log(min(rate / self.k, 1.0))
+
+
+def _fit_tail(null: np.ndarray) -> NullTail:
+    """Generalised Pareto tail of the sorted (ascending) null sample ``null``."""
+    n = len(null)
+    k = min(n, max(TAIL_MIN, round(TAIL_SHARE * n)))
+    v = float(null[n - k - 1]) if k < n else 0.0
+    excess = np.maximum(null[n - k:] - v, 0.0)
+    n_cens = int(CENSOR_SHARE * k)
+    # maximum likelihood of an exponential with right-censored values: the total excess
+    # (the censored ones counted at the censoring point) over the uncensored count
+    c = float(excess[k - n_cens - 1]) if n_cens else 0.0
+    sigma = (float(excess[:k - n_cens].sum()) + n_cens * c) / max(k - n_cens, 1)
+    return NullTail(null, v, k, max(sigma, 1e-12))
+
+
+def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
+             ) -> tuple[list[NullTail], np.ndarray, np.ndarray]:
+    """The null tails of the clusters' statistics ``stats`` (n, m) and the clusters above.
+
+    Most candidate clusters of a pair are noise (registration residue, photometric residue,
+    painting noise): their statistics are the pair's null sample. A cluster's expected null
+    count is ``m`` × the least over its statistics of the expected number of null clusters
+    at least as strong in that statistic (Bonferroni over the m statistics: at most ``rate``
+    null clusters are flagged in all). Clusters whose expected null count is at most
+    ``min(rate, PEEL_EXPECTED)`` are taken out of the sample and the tails fitted again
+    (until nothing changes), so the changes themselves do not inflate their own null.
+    Returns the tails, each cluster's expected null count and whether it is a change
+    (expected count at most ``rate``).
+    """
+    stats = np.asarray(stats, np.float64).reshape(len(stats), -1)
+    n_all, m = stats.shape
+    peel = min(rate, PEEL_EXPECTED)
+    flagged = np.zeros(n_all, bool)
+    tails: list[NullTail] = []
+    expected = np.full(n_all, np.inf)
+    for _ in range(iterations):
+        if int((~flagged).sum()) < 3:  # no null to speak of: nothing is unlikely under it
+            log.warning("changes: only %d candidate cluster(s) of noise: no null fitted, no "
+                        "change reported", int((~flagged).sum()))
+            empty = NullTail(np.zeros(0), 0.0, 0, 1.0)
+            return [empty] * m, np.full(n_all, np.inf), np.zeros(n_all, bool)
+        tails = [_fit_tail(np.sort(stats[~flagged, j])) for j in range(m)]
+        expected = m * np.min([t.expected(stats[:, j]) for j, t in enumerate(tails)], axis=0)
+        new = expected <= peel
+        if np.array_equal(new, flagged):
+            break
+        flagged = new
+    return tails, expected, expected <= rate
+
+
+@dataclass
+class Candidates:
+    """The pair's candidate clusters, their statistics and the null fitted to them."""
+
+    labels: np.ndarray  # (H, W) int32, 0 = none
+    level: float  # candidate level of the significance (median + CANDIDATE_MADS · MAD)
+    stats: np.ndarray  # (n, 2) peak and root excess mass of each cluster (label i + 1)
+    tails: list[NullTail]  # the null tail of each statistic
+    expected: np.ndarray  # (n,) expected number of null clusters at least as strong
+    flagged: np.ndarray  # (n,) bool: expected null count at most the false-alarm rate
+    info: dict[str, Any]
+
+    def statistics(self, sig: np.ndarray, area: np.ndarray) -> np.ndarray:
+        """Peak and root of the excess mass of a set of pixels (their significance and wall
+        areas)."""
+        return np.array([float(sig.max()) if len(sig) else 0.0,
+                         math.sqrt(float((np.maximum(sig - self.level, 0.0) * area).sum()))])
+
+    def expected_false(self, stats: np.ndarray) -> float:
+        """Expected number of the pair's null clusters at least as strong as ``stats``."""
+        return float(len(self.tails) * min(float(t.expected(x))
+                                           for t, x in zip(self.tails, stats, strict=True)))
+
+    def score(self, stats: np.ndarray, rate: float) -> float:
+        """How far ``stats`` exceed the levels at which ``rate`` null clusters are expected
+        (largest ratio over the statistics; > 1 for a change)."""
+        m = len(self.tails)
+        return max(float(x) / max(t.level(rate / m), 1e-12)
+                   for t, x in zip(self.tails, stats, strict=True))
+
+
+def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float) -> Candidates:
+    """Candidate clusters of the significance, scored against the pair's own null.
+
+    Two statistics per cluster: its peak significance (a strong change, however small) and
+    its excess mass above the candidate level on the wall, ``sum (s - level) · area`` (noise
+    units × mm²: a faint but large change, a flat low-contrast patch, whose peak the noise
+    matches).
+    """
+    s = sig[joint]
     med = float(np.median(s))
     mad = float(1.4826 * np.median(np.abs(s - med)))
-    t = med + k * mad
-    return t, {"median": med, "mad_sigma": mad, "k": k, "threshold": t}
+    level = med + CANDIDATE_MADS * mad
+    lab, n = label_wrapped(joint & (sig > level))
+    flat = lab.ravel()
+    mass = np.bincount(flat, weights=(np.maximum(sig - level, 0) * area).ravel(),
+                       minlength=n + 1)[1:]
+    peak = np.zeros(n + 1)
+    np.maximum.at(peak, flat, sig.ravel())
+    stats = np.stack([peak[1:], np.sqrt(mass)], axis=1)
+    tails, expected, flagged = fit_null(stats, rate)
+    info: dict[str, Any] = {
+        "median": med, "mad_sigma": mad, "candidate_level": level, "candidates": n,
+        "flagged": int(flagged.sum()), "false_alarm_rate": rate,
+        "null_clusters": len(tails[0].stats),
+        "null_tails": {name: {"from": t.v, "clusters": t.k, "scale": t.sigma,
+                              "level_at_rate": t.level(rate / len(tails))}
+                       for name, t in zip(("peak", "root_mass"), tails, strict=True)}}
+    return Candidates(lab, level, stats, tails, expected, flagged, info)
+
+
+def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
+                     rate: float) -> tuple[np.ndarray, int]:
+    """Labels (joined across the azimuth seam) of ``mask`` split into separate changes.
+
+    A connected cluster can hold several changes linked by a ridge of noise (two neighbouring
+    lesions, one lesion and the registration residue of a vessel beside it). Its basins of
+    significance (watershed from its maxima) are merged in the order of the saddles between
+    them, highest first (the component tree of the significance), unless the two groups
+    they would join are separate changes by the pair's own null: each group is a change
+    above the saddle, its peak overshoot and excess mass *above the saddle* as unlikely as a
+    change's above the candidate level (expected null count at most ``rate``), and the
+    saddle itself is no change (its height alone would not be flagged at ``rate``: the ridge
+    between them is the wall's noise, not a crevice inside one lesion).
+    """
+    from scipy.ndimage import label as nd_label
+    from scipy.ndimage import maximum_filter
+    from skimage.segmentation import watershed
+
+    h, w = mask.shape
+    s = np.where(mask, sig, 0.0).astype(np.float64)
+    m = mask
+    a = area
+
+    peaks = m & (s >= maximum_filter(s, size=3, mode="nearest"))
+    markers, n_markers = nd_label(peaks, structure=np.ones((3, 3)))
+    if n_markers == 0:
+        lab, n = label_wrapped(mask)
+        return lab, n
+    ws = watershed(-s, markers, mask=m, connectivity=2)
+    # a basin's pixels that the seam-joined labelling would also join stay one cluster: the
+    # watershed does not wrap, so the seam's neighbours are linked below as saddles
+    # saddles: for each pair of touching basins, the highest of min(s_p, s_q) over their
+    # touching pixel pairs
+    pa, pb, pv = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r0, r1 = (0, h - dr)
+        c0, c1 = (max(0, -dc), w - max(0, dc))
+        la = ws[r0:r1, c0:c1]
+        lb = ws[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
+        ok = (la > 0) & (lb > 0) & (la != lb)
+        if ok.any():
+            va = s[r0:r1, c0:c1][ok]
+            vb = s[r0 + dr:r1 + dr, c0 + dc:c1 + dc][ok]
+            x, y = la[ok], lb[ok]
+            pa.append(np.minimum(x, y))
+            pb.append(np.maximum(x, y))
+            pv.append(np.minimum(va, vb))
+    for dr in (-1, 0, 1):  # across the azimuth seam (last column to the first)
+        r0, r1 = max(0, -dr), h - max(0, dr)
+        la, lb = ws[r0:r1, -1], ws[r0 + dr:r1 + dr, 0]
+        ok = (la > 0) & (lb > 0) & (la != lb)
+        if ok.any():
+            x, y = la[ok], lb[ok]
+            pa.append(np.minimum(x, y))
+            pb.append(np.maximum(x, y))
+            pv.append(np.minimum(s[r0:r1, -1][ok], s[r0 + dr:r1 + dr, 0][ok]))
+    parent = np.arange(n_markers + 1)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    if pa:
+        ea, eb, ev = np.concatenate(pa), np.concatenate(pb), np.concatenate(pv)
+        order = np.lexsort((-ev, eb, ea))
+        ea, eb, ev = ea[order], eb[order], ev[order]
+        first = np.ones(len(ea), bool)
+        first[1:] = (ea[1:] != ea[:-1]) | (eb[1:] != eb[:-1])
+        ea, eb, ev = ea[first], eb[first], ev[first]  # highest saddle per pair
+        flat = ws.ravel()
+        idx = np.argsort(flat, kind="stable")
+        bounds = np.searchsorted(flat[idx], np.arange(n_markers + 2))
+        members: dict[int, np.ndarray] = {
+            i: idx[bounds[i]:bounds[i + 1]] for i in range(1, n_markers + 1)}
+        sflat, aflat = s.ravel(), a.ravel()
+        ridge_level = null.tails[0].level(rate / len(null.tails)) if null.tails else math.inf
+
+        def separate(pix: np.ndarray, saddle: float) -> bool:
+            v = sflat[pix]
+            above = v > saddle
+            stats = np.array([null.level + float(v.max()) - saddle,
+                              math.sqrt(float(((v[above] - saddle) * aflat[pix][above]).sum()))])
+            return null.expected_false(stats) <= rate
+
+        for i in np.argsort(-ev, kind="stable"):
+            gi, gj = find(int(ea[i])), find(int(eb[i]))
+            if gi == gj:
+                continue
+            sd = float(ev[i])
+            if sd < ridge_level and separate(members[gi], sd) and separate(members[gj], sd):
+                continue
+            parent[max(gi, gj)] = min(gi, gj)
+            members[min(gi, gj)] = np.concatenate([members[gi], members[gj]])
+            members.pop(max(gi, gj))
+    roots = np.array([find(i) for i in range(n_markers + 1)])
+    _, new = np.unique(roots, return_inverse=True)
+    lab = new[ws].astype(np.int32)
+    lab[~mask] = 0
+    return lab, int(lab.max())
+
+
+def changed_mask(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
+                 ) -> np.ndarray:
+    """Pixels of the clusters flagged as changes at ``rate`` (illumination's second pass)."""
+    c = candidates(sig, joint, area, rate)
+    return np.isin(c.labels, np.nonzero(c.flagged)[0] + 1)
+
+
+def _join_pieces(lab: np.ndarray, n: int, cand: np.ndarray, diff: Difference,
+                 null: Candidates, cfg: Any, gap_kernel: np.ndarray | None,
+                 ) -> tuple[np.ndarray, int]:
+    """Pieces of one change made one region: pieces on both sides of a strip of wall one
+    session did not see (narrower than ``gap_fill_mm``: their growth across the uncompared
+    wall meets), and a piece too weak to be a change on its own (expected null count above
+    the rate) within ``merge_mm`` of another (fragments). Two pieces that are each a change
+    and are separated by compared wall stay apart: the wall between them is the pair's noise.
+    """
+    import cv2
+
+    grid = diff.grid
+    comp, _ = label_wrapped(cand)
+    bridge = ~diff.joint & grid.hit
+    flat_sig, flat_area = diff.significance.ravel(), grid.area.ravel()
+    merge_k = _disc(cfg.merge_mm / 2 / grid.mm_per_px_y) if cfg.merge_mm > 0 else None
+    one = _disc(1)
+    pieces = []
+    for r in range(1, n + 1):
+        m = lab == r
+        if not m.any():
+            continue
+        px = np.flatnonzero(m)
+        weak = null.expected_false(null.statistics(flat_sig[px], flat_area[px])) > cfg.false_alarm_rate
+        gap = (np.flatnonzero(_morph(m | (_morph(m, cv2.MORPH_DILATE, gap_kernel) & bridge),
+                                     cv2.MORPH_DILATE, one)) if gap_kernel is not None else px)
+        near = (np.flatnonzero(_morph(m, cv2.MORPH_DILATE, merge_k)) if merge_k is not None
+                else px)
+        pieces.append((r, int(comp.ravel()[px[0]]), weak, px, gap, near))
+    parent = {p[0]: p[0] for p in pieces}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, (ri, ci, wi, _pi, gi, ni) in enumerate(pieces):
+        for rj, cj, wj, pj, gj, _nj in pieces[i + 1:]:
+            if ci == cj:  # split from one cluster at a saddle: separate by the null
+                continue
+            joined = (gap_kernel is not None and len(np.intersect1d(gi, gj, assume_unique=True)) > 0)
+            if not joined and merge_k is not None and (wi or wj):
+                joined = len(np.intersect1d(ni, pj, assume_unique=True)) > 0
+            if joined:
+                a, b = find(ri), find(rj)
+                parent[max(a, b)] = min(a, b)
+    out = np.zeros_like(lab)
+    roots = sorted({find(p[0]) for p in pieces})
+    new_id = {r: k for k, r in enumerate(roots, start=1)}
+    for r, *_ in pieces:
+        out[lab == r] = new_id[find(r)]
+    return out, len(roots)
 
 
 def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
@@ -228,34 +551,24 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
 
     grid: Grid = diff.grid
     sig = diff.significance
-    t_high, info = threshold(diff, cfg.threshold_k)
-    t_low = cfg.grow_fraction * t_high
-    low = diff.joint & (sig > t_low)
-    lab, n = label_wrapped(low)
-    seeds = np.unique(lab[diff.joint & (sig > t_high)])
-    seeds = seeds[seeds > 0]
-    cand = np.isin(lab, seeds)
+    null = candidates(sig, diff.joint, grid.area, cfg.false_alarm_rate)
+    info: dict[str, Any] = dict(null.info)
+    # the pixel level significance.png marks: the candidate level (what is tested)
+    info["threshold"] = null.level
+    cand = np.isin(null.labels, np.nonzero(null.flagged)[0] + 1)
     r_px = cfg.morphology_mm / grid.mm_per_px_y
     if r_px >= 0.5:
         k = _disc(r_px)
         cand = _morph(cand, cv2.MORPH_CLOSE, k)
         cand = _morph(cand, cv2.MORPH_OPEN, k) & diff.joint
-    lab, n = label_wrapped(cand)
+    # neighbouring changes in one cluster are split at the saddles of the significance
+    lab, n = split_at_saddles(sig, cand, grid.area, null, cfg.false_alarm_rate)
     # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
     # either side shrink by the morphological opening
     gap_kernel = (_disc((cfg.gap_fill_mm / 2 + cfg.edge_margin_mm + cfg.morphology_mm)
                         / grid.mm_per_px_y) if cfg.gap_fill_mm > 0 else None)
     if (cfg.merge_mm > 0 or gap_kernel is not None) and n > 1:
-        # fragments of one change closer than merge_mm, or on both sides of a strip of wall
-        # one session did not see (narrower than gap_fill_mm), are one region
-        grown = cand.copy()
-        if cfg.merge_mm > 0:
-            grown |= _morph(cand, cv2.MORPH_DILATE, _disc(cfg.merge_mm / 2 / grid.mm_per_px_y))
-        if gap_kernel is not None:
-            grown |= _morph(cand, cv2.MORPH_DILATE, gap_kernel) & ~diff.joint & grid.hit
-        glab, _ = label_wrapped(grown)
-        lab = np.where(cand, glab, 0)
-        n = int(lab.max())
+        lab, n = _join_pieces(lab, n, cand, diff, null, cfg, gap_kernel)
     min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
     regions: list[Region] = []
     dropped_small = 0
@@ -265,6 +578,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     dropped_far = 0
     dropped_neck = 0
     dropped_long = 0
+    dropped_weak = 0
     dropped_faint = 0
     dropped_duplicate = 0
     ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
@@ -290,7 +604,11 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         if flat_area[px].sum() < min_area:
             dropped_small += 1
             continue
-        top = float(flat_sig[px].max())
+        stats = null.statistics(flat_sig[px], flat_area[px])
+        expected_false = null.expected_false(stats)
+        if expected_false > cfg.false_alarm_rate:  # what the morphology left is not a change
+            dropped_weak += 1
+            continue
         peak = float(np.percentile(flat_sig[px], PEAK_PERCENTILE))
         # FWHM outline: within the region's bounding box (grown by its own size), pixels above
         # half the peak that touch the region, holes filled
@@ -306,13 +624,15 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         c_idx = np.arange(c_lo, ucols.max() + pad_c + 1) % w
         sub_sig = sig[r_lo:r_hi][:, c_idx]
         sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
-        half = sub_joint & (sub_sig >= 0.5 * peak)
+        # the outline stays off the other regions' pixels (a neighbour split off at a saddle)
+        sub_lab = lab[r_lo:r_hi][:, c_idx]
+        half = sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
         core = np.zeros_like(half)
         core[rows - r_lo, ucols - c_lo] = True
-        _, sub_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
-        keep = np.unique(sub_lab[core & half])
+        _, half_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
+        keep = np.unique(half_lab[core & half])
         keep = keep[keep > 0]
-        outline = _fill_holes(np.isin(sub_lab, keep)) & sub_joint if len(keep) else core
+        outline = _fill_holes(np.isin(half_lab, keep)) & sub_joint if len(keep) else core
         # the outline closed across unseen strips of wall that cut into it (concavities
         # only: closing never reaches beyond the region's own convex outline)
         seen_outline = outline
@@ -393,8 +713,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
         if delta_e < cfg.min_delta_e:
             dropped_faint += 1
-            log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, "
-                     "not visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
+            log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, not "
+                     "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
             continue
         regions.append(Region(
             id=0, pixels=pix_all, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
@@ -402,13 +722,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             diameter_mm=math.sqrt(4 * area / math.pi),
             mean_difference=float(np.average(np.linalg.norm(flat_delta[pix], axis=1),
                                              weights=a)),
-            score=top / max(t_high, 1e-12), peak_significance=peak,
+            score=null.score(stats, cfg.false_alarm_rate),
+            peak_significance=peak,
             mean_significance=mean_sig, atlas_col=float(col[0]), atlas_row=float(row[0]),
             inconsistency=consistency.get("inconsistency"), enclosed=enclosed,
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(lum_b[pix])) / lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,
-            delta_e=delta_e))
+            delta_e=delta_e, expected_false=expected_false, mass=float(stats[1]) ** 2))
     regions.sort(key=lambda g: -g.score)
     # pieces of one change on both sides of a gap, each followed into the gap, can describe
     # the same wall: keep the higher-scoring one
@@ -423,17 +744,23 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     regions = unique
     for i, g in enumerate(regions, start=1):
         g.id = i
-    info.update(low_threshold=t_low, candidates=n, dropped_small=dropped_small,
+    info.update(regions_before_checks=n, dropped_small=dropped_small,
                 dropped_at_edge=dropped_edge, dropped_inconsistent=dropped_inconsistent,
                 dropped_dark_in_a=dropped_dark, dropped_off_reconstruction=dropped_far,
                 dropped_near_neck=dropped_neck, dropped_elongated=dropped_long,
-                dropped_faint=dropped_faint, dropped_duplicate=dropped_duplicate,
+                dropped_weak=dropped_weak, dropped_faint=dropped_faint,
+                dropped_duplicate=dropped_duplicate,
                 min_area_mm2=min_area, regions=len(regions),
-                score_definition="largest significance in the region / threshold (> 1)")
-    log.info("changes: threshold %.2f (median %.2f + %.1f x MAD %.2f), %d region(s); dropped: "
-             "%d too small, %d at the edge of the compared wall, %d off the reconstruction, %d "
-             "on an opening in A, %d photo-inconsistent, %d at the bladder neck, %d elongated, "
-             "%d faint", t_high, info["median"], cfg.threshold_k, info["mad_sigma"], len(regions),
-             dropped_small, dropped_edge, dropped_far, dropped_dark, dropped_inconsistent,
-             dropped_neck, dropped_long, dropped_faint)
+                score_definition="largest ratio of the region's peak significance or excess mass "
+                "to the level at which false_alarm_rate null regions are expected (> 1)",
+                expected_false_definition="expected number of regions at least this strong "
+                "in the pair without any change (its null)")
+    log.info("changes: %d candidate cluster(s) above %.2f (median %.2f + %g x MAD %.2f), "
+             "%d above the pair's null at %g expected false region(s); %d region(s); dropped: "
+             "%d too small, %d weak after cleaning, %d faint, %d at the edge of the compared wall, %d off "
+             "the reconstruction, %d on an opening in A, %d photo-inconsistent, %d at the "
+             "bladder neck, %d elongated", null.info["candidates"], null.level, null.info["median"],
+             CANDIDATE_MADS, null.info["mad_sigma"], null.info["flagged"], cfg.false_alarm_rate,
+             len(regions), dropped_small, dropped_weak, dropped_faint, dropped_edge, dropped_far, dropped_dark,
+             dropped_inconsistent, dropped_neck, dropped_long)
     return regions, info

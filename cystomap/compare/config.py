@@ -12,8 +12,8 @@ class CompareConfig:
     """How two sessions are co-registered, differenced and their changes measured.
 
     Lengths are in the units of the SfM models (mm when the sessions were given a metric
-    scale). No default is tuned to one phantom: the detection threshold is a multiple of the
-    noise level measured on the pair itself (see ``threshold_k``).
+    scale). No default is tuned to one phantom: the detection threshold comes from the null
+    distribution of the pair itself at a chosen false-alarm rate (see ``false_alarm_rate``).
     """
 
     # --- descriptors of the 3-D points (SIFT at every observation of a track, averaged) ---
@@ -96,25 +96,31 @@ class CompareConfig:
     edge_margin_mm: float = 2.0
 
     # --- changes ---
-    # threshold = median + threshold_k × 1.4826 · MAD of the per-pixel significance (the
-    # smoothed colour difference whitened by its robust colour covariance) on the compared
-    # wall: the pair's own noise level. Registration jitter and atlas seams give that
-    # significance a heavy tail. k alone once had to keep spurious regions out (k = 15: the
-    # largest in pairs without change peaked 12.6-15 MADs up); since regions must also be
-    # visible (min_delta_e) and patches (max_elongation), k only has to separate candidates
-    # from noise. Measured on full-size pairs of seeds 7 and 8 (default, 7 % deformed, no
-    # change): k = 15 found 1 of 6 lesions on seed 8, whose pair has a heavier noise tail (a
-    # colour imbalance between the sessions; lesions peaked 16-30 MADs up); k = 8 found every
-    # lesion on wall both sessions registered, with no false positive on either no-change pair.
-    threshold_k: float = 8.0
-    # a region starts at a pixel above the threshold and grows over the connected pixels
-    # above grow_fraction × the threshold (hysteresis); it is measured where it exceeds half
-    # of its own peak (99th percentile), the full-width-at-half-maximum outline
-    grow_fraction: float = 0.5
-    # regions smaller than a disc of this diameter (model units) are dropped
+    # expected number of false regions per pair (regions the detector would report on the pair
+    # if nothing had changed). The threshold comes from the pair's own null: candidate
+    # clusters of the significance (excursions above its median + 2 MADs on the compared
+    # wall) are scored by their peak and by the root of their excess mass on the wall; most
+    # are noise, and exponential tails fitted to the strongest of them (the strongest 10 %
+    # counted only by their number, the changes taken out, iteratively) give each cluster the
+    # expected number of noise clusters at least as strong; clusters at or below this rate
+    # are changes. A cluster holding several changes is split at the saddles of the
+    # significance where each side is a change above the saddle and the saddle is not
+    # (changes.csv: expected_false). 0.1 = one false region in ten pairs
+    false_alarm_rate: float = 0.1
+    # the smallest change reported: regions smaller than a disc of this diameter (model
+    # units) are dropped, whatever their significance (a physical size, not a noise threshold)
     min_diameter_mm: float = 3.0
-    # pieces of one change closer than this (model units; e.g. cut by a thin unseen gap of
-    # an atlas) are one region
+    # a change must be visible (a perceptual floor of the change of interest, applied after
+    # the null's decision, not a noise threshold): the mean colour of the region in B differs
+    # from A's (both illumination-matched) by at least this CIE76 ΔE*ab. 2.3 is the
+    # just-noticeable difference, 3.5-5 one an untrained observer notices. The pair's null
+    # alone passes large, smooth photometric residue of low-noise pairs (significant by its
+    # size; ΔE 1.3-3.8 on the phantom pairs), while lesions change their patch (ΔE 4.3-13).
+    # 0 = no check
+    min_delta_e: float = 4.0
+    # a piece too weak to be a change on its own within this distance (model units) of
+    # another is part of it (fragments of one change); two pieces that are each a change
+    # stay apart, whatever their distance
     merge_mm: float = 4.0
     # a change cut by a strip of wall that one session did not film (a gap between two
     # sweeps of the scan) narrower than this (model units; the edge_margin_mm left out on
@@ -133,13 +139,6 @@ class CompareConfig:
     # a change is a patch: regions longer than this many times their width on the wall are a
     # vessel or an edge left misaligned (0 = no check)
     max_elongation: float = 3.5
-    # a change must be visible: the mean colour of the region in B differs from A's (both
-    # illumination-matched) by at least this CIE76 ΔE*ab. 2.3 is the just-noticeable
-    # difference, 3.5-5 one an untrained observer notices; texture left slightly misaligned
-    # (vessels, mottling) changes single pixels but hardly a patch's mean colour (spurious
-    # regions on phantom pairs without change: 1.6-3.5) while a new lesion changes its patch
-    # (phantom lesions: 6.8-13). 0 = no check
-    min_delta_e: float = 4.0
     # a change must be surrounded by compared wall: at least this share of a ring of ring_mm
     # around it must be jointly seen (else it lies on the edge of one session's coverage or
     # of a hole such as the aperture, where the texture is not comparable)
@@ -201,14 +200,13 @@ class CompareConfig:
             "min_views >= 0": self.min_views >= 0,
             "support_mm >= 0": self.support_mm >= 0,
             "point_support_mm >= 0": self.point_support_mm >= 0,
-            "threshold_k > 0": self.threshold_k > 0,
-            "0 < grow_fraction <= 1": 0 < self.grow_fraction <= 1,
+            "0 < false_alarm_rate <= 100": 0 < self.false_alarm_rate <= 100,
             "min_diameter_mm >= 0": self.min_diameter_mm >= 0,
+            "min_delta_e >= 0": self.min_delta_e >= 0,
             "max_point_distance_mm >= 0": self.max_point_distance_mm >= 0,
             "merge_mm >= 0": self.merge_mm >= 0,
             "gap_fill_mm >= 0": self.gap_fill_mm >= 0,
             "max_elongation >= 0": self.max_elongation >= 0,
-            "min_delta_e >= 0": self.min_delta_e >= 0,
             "0 <= min_enclosed <= 1": 0 <= self.min_enclosed <= 1,
             "ring_mm > 0": self.ring_mm > 0,
             "max_inconsistency >= 0": self.max_inconsistency >= 0,

@@ -329,10 +329,10 @@ class Difference:
 
 def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb: np.ndarray,
                        a_seen: np.ndarray, cfg: Any,
-                       hint: Callable[[np.ndarray, np.ndarray], float]) -> Difference:
+                       hint: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Difference:
     """Illumination-matched, smoothed and whitened colour difference B − A on the grid.
 
-    ``hint(significance, joint)`` gives the level above which wall counts as changed when the
+    ``hint(significance, joint)`` gives the wall (bool mask) that counts as changed when the
     illumination field is re-estimated without it (second pass).
 
     Resolution tolerance (``blur_tolerance_mm``): the two atlases are painted from frames at
@@ -380,7 +380,7 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
         sig[~joint] = 0
         if round_ == 0 and cfg.illumination_mm > 0:
             # leave clearly changed wall (and a margin) out of the illumination field
-            flagged = joint & (sig > hint(sig, joint))
+            flagged = joint & hint(sig, joint)
             exclude = blur_mm(flagged.astype(np.float32), grid, 2 * cfg.illumination_mm / 5) > 0.02
             info["illumination_excluded_share"] = float(exclude[joint].mean())
         else:

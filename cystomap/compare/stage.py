@@ -10,7 +10,10 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   ``id, x, y, z`` (centroid on session B's wall, B's model frame, mm), ``azimuth_deg,
   elevation_deg`` (about B's atlas barycentre, B's atlas axes), ``area_mm2`` (wall area),
   ``diameter_mm`` (sqrt(4 area / π)), ``mean_difference`` (mean colour difference, 0-255 RGB
-  units), ``score`` (largest significance in the region / threshold, > 1),
+  units), ``score`` (largest ratio of its peak significance or excess mass to the level at
+  which ``false_alarm_rate`` null regions are expected, > 1), ``expected_false`` (expected
+  number of regions at least this strong in the pair had nothing changed), ``mass`` (excess
+  significance mass above the candidate level, noise units × mm²),
   ``peak_significance`` (99th percentile), ``mean_significance`` (noise units), ``atlas_col, atlas_row``
   (centroid in B's atlas.png), ``pixels`` (comparison-grid pixels), and the checks it
   passed: ``inconsistency`` (photo-consistency in B's frames, empty if not tested),
@@ -25,8 +28,9 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
 * ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
   ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
   change, black = not compared (not seen by both, or far from every inlier match);
-* ``significance.png``: the per-pixel significance (grey = threshold × 2 saturates; red =
-  above threshold), black = not compared;
+* ``significance.png``: the per-pixel significance (grey = candidate level × 2 saturates;
+  red = above the candidate level, the clusters tested against the pair's null), black = not
+  compared;
 * ``changes.png``: B's atlas with the regions outlined (numbered by ``id``);
 * ``changes.glb``: B's textured model (glTF 2.0) with the regions tinted and outlined;
 * ``side_by_side.png``: A's atlas (left) and B's atlas (right), for manual comparison;
@@ -57,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
-from cystomap.compare.changes import CHANGE_COLUMNS, Region, detect, threshold_of
+from cystomap.compare.changes import CHANGE_COLUMNS, Region, changed_mask, detect
 from cystomap.compare.config import CompareConfig
 from cystomap.compare.difference import (
     AtlasSampler,
@@ -312,8 +316,8 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
                 pa = compose(pa, flow)
                 maps = sampler.pixel_maps(pa.reshape(-1, 3), shape)
                 a_rgb, a_seen = sampler.sample(maps)
-    def hint(sig: np.ndarray, joint: np.ndarray) -> float:
-        return cfg.grow_fraction * threshold_of(sig[joint], cfg.threshold_k)[0]
+    def hint(sig: np.ndarray, joint: np.ndarray) -> np.ndarray:
+        return changed_mask(sig, joint, grid.area, cfg.false_alarm_rate)
 
     diff = compute_difference(grid, b_rgb, b_seen, a_rgb, a_seen > 0.999, cfg, hint)
     if cfg.extend_into_unseen:
