@@ -1,5 +1,8 @@
 """Changed regions: a decision calibrated on the pair's own null, clean, measure on the wall.
 
+(Over 450 lines because detection, cleaning, the checks and the measurement of a region share
+one pipeline of intermediate images; the null's statistics are in :mod:`cystomap.compare.null`.)
+
 Decision (``false_alarm_rate``, the expected number of false regions per pair): the
 per-pixel significance (whitened, smoothed colour difference; see
 :mod:`cystomap.compare.difference`) has a heavy, pair-specific tail even without any change
@@ -66,6 +69,13 @@ import numpy as np
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, _ring, label_wrapped
+from cystomap.compare.null import (
+    CANDIDATE_MADS,
+    Candidates,
+    candidates,
+    split_at_saddles,
+)
+from cystomap.compare.null import changed_mask as changed_mask  # re-exported: stage, tests
 
 log = logging.getLogger(__name__)
 
@@ -211,272 +221,6 @@ def _close_across(mask: np.ndarray, kernel: np.ndarray, compared: np.ndarray,
 
 
 # --------------------------------------------------------------------------- the pair's null
-
-# candidate clusters are the connected excursions of the significance above
-# median + CANDIDATE_MADS · 1.4826 · MAD on the compared wall: a level the pair's own noise
-# crosses often (about 4 % of a chi(3) field's area), so that its noise clusters are many
-# and their strength distribution can be estimated; it sets what is tested, not what is
-# reported (that is false_alarm_rate's job)
-CANDIDATE_MADS = 2.0
-# the null's tail (generalised Pareto, peaks over threshold) is fitted to the strongest
-# TAIL_SHARE of the null clusters, at least TAIL_MIN of them; the strongest CENSOR_SHARE of
-# those enter the fit only by their number (right-censored: "this many are stronger"), so
-# that changes among them (a few of a pair's clusters, but many of its strongest) cannot
-# make the null's tail heavier than its noise clusters show
-TAIL_SHARE = 0.25
-TAIL_MIN = 20
-CENSOR_SHARE = 0.4
-# clusters the null expects fewer than this many of (or false_alarm_rate, if lower) are taken
-# out of the null sample before it is fitted again: the changes must not inflate their own
-# null, but at a high rate, taking out what the null itself predicts would thin its tail
-# round after round
-PEEL_EXPECTED = 0.1
-
-
-@dataclass
-class NullTail:
-    """Expected number of the pair's null (no-change) clusters at least as strong as a value.
-
-    Below ``v`` the count of null clusters is used as is; above it, ``k`` null clusters'
-    excesses follow an exponential tail of scale ``sigma``.
-    """
-
-    stats: np.ndarray  # sorted strengths of the null clusters (ascending)
-    v: float
-    k: int
-    sigma: float
-
-    def expected(self, t: np.ndarray | float) -> np.ndarray:
-        t = np.asarray(t, np.float64)
-        n_above = len(self.stats) - np.searchsorted(self.stats, t, side="left")
-        tail = self.k * np.exp(-np.maximum(t - self.v, 0.0) / self.sigma)
-        return np.where(t > self.v, tail, n_above.astype(np.float64))
-
-    def level(self, rate: float) -> float:
-        """The strength at which ``rate`` null clusters are expected (at or above)."""
-        if self.k <= 0:
-            return float(self.stats[-1]) if len(self.stats) else 0.0
-        return self.v - self.sigma * math.log(min(rate / self.k, 1.0))
-
-
-def _fit_tail(null: np.ndarray) -> NullTail:
-    """Generalised Pareto tail of the sorted (ascending) null sample ``null``."""
-    n = len(null)
-    k = min(n, max(TAIL_MIN, round(TAIL_SHARE * n)))
-    v = float(null[n - k - 1]) if k < n else 0.0
-    excess = np.maximum(null[n - k:] - v, 0.0)
-    n_cens = int(CENSOR_SHARE * k)
-    # maximum likelihood of an exponential with right-censored values: the total excess
-    # (the censored ones counted at the censoring point) over the uncensored count
-    c = float(excess[k - n_cens - 1]) if n_cens else 0.0
-    sigma = (float(excess[:k - n_cens].sum()) + n_cens * c) / max(k - n_cens, 1)
-    return NullTail(null, v, k, max(sigma, 1e-12))
-
-
-def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
-             ) -> tuple[list[NullTail], np.ndarray, np.ndarray]:
-    """The null tails of the clusters' statistics ``stats`` (n, m) and the clusters above.
-
-    Most candidate clusters of a pair are noise (registration residue, photometric residue,
-    painting noise): their statistics are the pair's null sample. A cluster's expected null
-    count is ``m`` × the least over its statistics of the expected number of null clusters
-    at least as strong in that statistic (Bonferroni over the m statistics: at most ``rate``
-    null clusters are flagged in all). Clusters whose expected null count is at most
-    ``min(rate, PEEL_EXPECTED)`` are taken out of the sample and the tails fitted again
-    (until nothing changes), so the changes themselves do not inflate their own null.
-    Returns the tails, each cluster's expected null count and whether it is a change
-    (expected count at most ``rate``).
-    """
-    stats = np.asarray(stats, np.float64).reshape(len(stats), -1)
-    n_all, m = stats.shape
-    peel = min(rate, PEEL_EXPECTED)
-    flagged = np.zeros(n_all, bool)
-    tails: list[NullTail] = []
-    expected = np.full(n_all, np.inf)
-    for _ in range(iterations):
-        if int((~flagged).sum()) < 3:  # no null to speak of: nothing is unlikely under it
-            log.warning("changes: only %d candidate cluster(s) of noise: no null fitted, no "
-                        "change reported", int((~flagged).sum()))
-            empty = NullTail(np.zeros(0), 0.0, 0, 1.0)
-            return [empty] * m, np.full(n_all, np.inf), np.zeros(n_all, bool)
-        tails = [_fit_tail(np.sort(stats[~flagged, j])) for j in range(m)]
-        expected = m * np.min([t.expected(stats[:, j]) for j, t in enumerate(tails)], axis=0)
-        new = expected <= peel
-        if np.array_equal(new, flagged):
-            break
-        flagged = new
-    return tails, expected, expected <= rate
-
-
-@dataclass
-class Candidates:
-    """The pair's candidate clusters, their statistics and the null fitted to them."""
-
-    labels: np.ndarray  # (H, W) int32, 0 = none
-    level: float  # candidate level of the significance (median + CANDIDATE_MADS · MAD)
-    stats: np.ndarray  # (n, 2) peak and root excess mass of each cluster (label i + 1)
-    tails: list[NullTail]  # the null tail of each statistic
-    expected: np.ndarray  # (n,) expected number of null clusters at least as strong
-    flagged: np.ndarray  # (n,) bool: expected null count at most the false-alarm rate
-    info: dict[str, Any]
-
-    def statistics(self, sig: np.ndarray, area: np.ndarray) -> np.ndarray:
-        """Peak and root of the excess mass of a set of pixels (their significance and wall
-        areas)."""
-        return np.array([float(sig.max()) if len(sig) else 0.0,
-                         math.sqrt(float((np.maximum(sig - self.level, 0.0) * area).sum()))])
-
-    def expected_false(self, stats: np.ndarray) -> float:
-        """Expected number of the pair's null clusters at least as strong as ``stats``."""
-        return float(len(self.tails) * min(float(t.expected(x))
-                                           for t, x in zip(self.tails, stats, strict=True)))
-
-    def score(self, stats: np.ndarray, rate: float) -> float:
-        """How far ``stats`` exceed the levels at which ``rate`` null clusters are expected
-        (largest ratio over the statistics; > 1 for a change)."""
-        m = len(self.tails)
-        return max(float(x) / max(t.level(rate / m), 1e-12)
-                   for t, x in zip(self.tails, stats, strict=True))
-
-
-def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float) -> Candidates:
-    """Candidate clusters of the significance, scored against the pair's own null.
-
-    Two statistics per cluster: its peak significance (a strong change, however small) and
-    its excess mass above the candidate level on the wall, ``sum (s - level) · area`` (noise
-    units × mm²: a faint but large change, a flat low-contrast patch, whose peak the noise
-    matches).
-    """
-    s = sig[joint]
-    med = float(np.median(s))
-    mad = float(1.4826 * np.median(np.abs(s - med)))
-    level = med + CANDIDATE_MADS * mad
-    lab, n = label_wrapped(joint & (sig > level))
-    flat = lab.ravel()
-    mass = np.bincount(flat, weights=(np.maximum(sig - level, 0) * area).ravel(),
-                       minlength=n + 1)[1:]
-    peak = np.zeros(n + 1)
-    np.maximum.at(peak, flat, sig.ravel())
-    stats = np.stack([peak[1:], np.sqrt(mass)], axis=1)
-    tails, expected, flagged = fit_null(stats, rate)
-    info: dict[str, Any] = {
-        "median": med, "mad_sigma": mad, "candidate_level": level, "candidates": n,
-        "flagged": int(flagged.sum()), "false_alarm_rate": rate,
-        "null_clusters": len(tails[0].stats),
-        "null_tails": {name: {"from": t.v, "clusters": t.k, "scale": t.sigma,
-                              "level_at_rate": t.level(rate / len(tails))}
-                       for name, t in zip(("peak", "root_mass"), tails, strict=True)}}
-    return Candidates(lab, level, stats, tails, expected, flagged, info)
-
-
-def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
-                     rate: float) -> tuple[np.ndarray, int]:
-    """Labels (joined across the azimuth seam) of ``mask`` split into separate changes.
-
-    A connected cluster can hold several changes linked by a ridge of noise (two neighbouring
-    lesions, one lesion and the registration residue of a vessel beside it). Its basins of
-    significance (watershed from its maxima) are merged in the order of the saddles between
-    them, highest first (the component tree of the significance), unless the two groups
-    they would join are separate changes by the pair's own null: each group is a change
-    above the saddle, its peak overshoot and excess mass *above the saddle* as unlikely as a
-    change's above the candidate level (expected null count at most ``rate``), and the
-    saddle itself is no change (its height alone would not be flagged at ``rate``: the ridge
-    between them is the wall's noise, not a crevice inside one lesion).
-    """
-    from scipy.ndimage import label as nd_label
-    from scipy.ndimage import maximum_filter
-    from skimage.segmentation import watershed
-
-    h, w = mask.shape
-    s = np.where(mask, sig, 0.0).astype(np.float64)
-    m = mask
-    a = area
-
-    peaks = m & (s >= maximum_filter(s, size=3, mode="nearest"))
-    markers, n_markers = nd_label(peaks, structure=np.ones((3, 3)))
-    if n_markers == 0:
-        lab, n = label_wrapped(mask)
-        return lab, n
-    ws = watershed(-s, markers, mask=m, connectivity=2)
-    # a basin's pixels that the seam-joined labelling would also join stay one cluster: the
-    # watershed does not wrap, so the seam's neighbours are linked below as saddles
-    # saddles: for each pair of touching basins, the highest of min(s_p, s_q) over their
-    # touching pixel pairs
-    pa, pb, pv = [], [], []
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        r0, r1 = (0, h - dr)
-        c0, c1 = (max(0, -dc), w - max(0, dc))
-        la = ws[r0:r1, c0:c1]
-        lb = ws[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
-        ok = (la > 0) & (lb > 0) & (la != lb)
-        if ok.any():
-            va = s[r0:r1, c0:c1][ok]
-            vb = s[r0 + dr:r1 + dr, c0 + dc:c1 + dc][ok]
-            x, y = la[ok], lb[ok]
-            pa.append(np.minimum(x, y))
-            pb.append(np.maximum(x, y))
-            pv.append(np.minimum(va, vb))
-    for dr in (-1, 0, 1):  # across the azimuth seam (last column to the first)
-        r0, r1 = max(0, -dr), h - max(0, dr)
-        la, lb = ws[r0:r1, -1], ws[r0 + dr:r1 + dr, 0]
-        ok = (la > 0) & (lb > 0) & (la != lb)
-        if ok.any():
-            x, y = la[ok], lb[ok]
-            pa.append(np.minimum(x, y))
-            pb.append(np.maximum(x, y))
-            pv.append(np.minimum(s[r0:r1, -1][ok], s[r0 + dr:r1 + dr, 0][ok]))
-    parent = np.arange(n_markers + 1)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = int(parent[i])
-        return i
-
-    if pa:
-        ea, eb, ev = np.concatenate(pa), np.concatenate(pb), np.concatenate(pv)
-        order = np.lexsort((-ev, eb, ea))
-        ea, eb, ev = ea[order], eb[order], ev[order]
-        first = np.ones(len(ea), bool)
-        first[1:] = (ea[1:] != ea[:-1]) | (eb[1:] != eb[:-1])
-        ea, eb, ev = ea[first], eb[first], ev[first]  # highest saddle per pair
-        flat = ws.ravel()
-        idx = np.argsort(flat, kind="stable")
-        bounds = np.searchsorted(flat[idx], np.arange(n_markers + 2))
-        members: dict[int, np.ndarray] = {
-            i: idx[bounds[i]:bounds[i + 1]] for i in range(1, n_markers + 1)}
-        sflat, aflat = s.ravel(), a.ravel()
-        ridge_level = null.tails[0].level(rate / len(null.tails)) if null.tails else math.inf
-
-        def separate(pix: np.ndarray, saddle: float) -> bool:
-            v = sflat[pix]
-            above = v > saddle
-            stats = np.array([null.level + float(v.max()) - saddle,
-                              math.sqrt(float(((v[above] - saddle) * aflat[pix][above]).sum()))])
-            return null.expected_false(stats) <= rate
-
-        for i in np.argsort(-ev, kind="stable"):
-            gi, gj = find(int(ea[i])), find(int(eb[i]))
-            if gi == gj:
-                continue
-            sd = float(ev[i])
-            if sd < ridge_level and separate(members[gi], sd) and separate(members[gj], sd):
-                continue
-            parent[max(gi, gj)] = min(gi, gj)
-            members[min(gi, gj)] = np.concatenate([members[gi], members[gj]])
-            members.pop(max(gi, gj))
-    roots = np.array([find(i) for i in range(n_markers + 1)])
-    _, new = np.unique(roots, return_inverse=True)
-    lab = new[ws].astype(np.int32)
-    lab[~mask] = 0
-    return lab, int(lab.max())
-
-
-def changed_mask(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
-                 ) -> np.ndarray:
-    """Pixels of the clusters flagged as changes at ``rate`` (illumination's second pass)."""
-    c = candidates(sig, joint, area, rate)
-    return np.isin(c.labels, np.nonzero(c.flagged)[0] + 1)
 
 
 def _join_pieces(lab: np.ndarray, n: int, cand: np.ndarray, diff: Difference,

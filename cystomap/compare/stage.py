@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.anatomy import ANATOMY_COLUMNS, Anatomy, locate
-from cystomap.compare.changes import CHANGE_COLUMNS, Region, changed_mask, detect
+from cystomap.compare.changes import CHANGE_COLUMNS, Region, detect
 from cystomap.compare.config import CompareConfig
 from cystomap.compare.difference import (
     AtlasSampler,
@@ -86,6 +86,7 @@ from cystomap.compare.images import (
     significance_image,
 )
 from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
+from cystomap.compare.null import changed_mask
 from cystomap.compare.registration import Registration, register
 from cystomap.errors import InputError
 from cystomap.images import imwrite_rgb
