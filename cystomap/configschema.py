@@ -126,11 +126,11 @@ def section_schema(cls: type, description: str) -> dict[str, Any]:
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
         prop = _type(hints[f.name])
         check, choices = f.metadata.get("check"), f.metadata.get("choices")
+        target = prop["items"] if "items" in prop else prop  # a list's range is its items'
         if check:
-            target = prop["items"] if prop["type"] == "array" else prop
             target.update(_bounds(check))
         if choices is not None:
-            prop["enum"] = [_plain(c) for c in choices]
+            target["enum"] = [_plain(c) for c in choices]
         prop["default"] = _plain(f.default)
         prop["description"] = docs[f.name]
         props[f.name] = prop

@@ -49,6 +49,13 @@ def test_schema_defaults_are_the_dataclass_defaults(schema, section):
     assert schema["$defs"][section].get("additionalProperties") is False
 
 
+def test_every_default_is_valid_under_the_schema(schema):
+    """What Snakemake fills in from the defaults must pass the schema it came from."""
+    defaults = {name: {k: p["default"] for k, p in schema["$defs"][name]["properties"].items()}
+                for name in SECTIONS}
+    jsonschema.Draft202012Validator(schema).validate(defaults)
+
+
 def test_repository_config_is_valid_and_complete(repo, schema):
     config = yaml.safe_load((repo / "config.yaml").read_text())
     jsonschema.Draft202012Validator(schema).validate(config)
@@ -76,6 +83,8 @@ def test_generated_schema_carries_ranges_choices_and_comments():
         mode: str = setting("a", choices=("a", "b"))
         # Lengths (mm).
         sizes: tuple[float, ...] = setting((1.0, 2.0), "> 0")
+        # Kinds.
+        kinds: tuple[str, ...] = setting((), choices=("x", "y"))
         # Optional centre.
         center: tuple[float, float] | None = None
 
@@ -88,6 +97,7 @@ def test_generated_schema_carries_ranges_choices_and_comments():
     assert props["level"]["exclusiveMinimum"] == 0 and props["level"]["description"] == "See share."
     assert props["mode"]["enum"] == ["a", "b"]
     assert props["sizes"]["items"] == {"type": "number", "exclusiveMinimum": 0}
+    assert props["kinds"]["items"] == {"type": "string", "enum": ["x", "y"]} and "enum" not in props["kinds"]
     assert props["center"]["type"] == ["array", "null"] and props["center"]["maxItems"] == 2
     with pytest.raises(ValueError, match=r"sizes > 0 \(got \(1.0, -2.0\)\)"):
         Demo(sizes=(1.0, -2.0))
