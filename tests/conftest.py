@@ -21,13 +21,30 @@ def repo() -> Path:
 # The slow tier: tests that render phantom sessions, run SfM or run Snakemake (``make test``
 # runs everything, ``make test-fast`` leaves them out with ``-m "not slow"``). A test is slow
 # when it uses one of these fixtures, is marked ``workflow``, or is marked ``slow`` itself.
-SLOW_FIXTURES = {"phantom_study", "workflow_factory", "sessions", "small_session", "phantom_videos"}
+SLOW_FIXTURES = {"phantom_study", "workflow_factory", "sessions", "small_session", "phantom_videos",
+                 "glint_session", "pair"}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.get_closest_marker("workflow"):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(autouse=True)
+def _unit_tier_runs_no_sfm(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A test that maps with pycolmap but is not marked slow fails, naming the marker, so the
+    unit tier (``make test-fast``) stays free of SfM as new tests are added."""
+    if request.node.get_closest_marker("slow"):
+        return
+    import pycolmap
+
+    def refuse(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("SfM mapping in a test not marked slow: add @pytest.mark.slow or a slow "
+                             "fixture (tests/conftest.py SLOW_FIXTURES)")
+
+    for name in ("incremental_mapping", "IncrementalMapper"):
+        monkeypatch.setattr(pycolmap, name, refuse)
 
 
 class Workflow:

@@ -147,6 +147,7 @@ RAW = {"min_diameter_mm": 0, "max_elongation": 0, "morphology_mm": 0, "merge_mm"
        "gap_fill_mm": 0, "extend_into_unseen": False, "min_enclosed": 0}
 
 
+@pytest.mark.slow  # 10 seeded no-change pairs through the whole detector (~70 s)
 def test_no_change_pairs_give_about_the_false_alarm_rate(sphere) -> None:
     """Calibration: on mottled no-change pairs the detector (its clean-up and size checks off)
     reports about false_alarm_rate regions per pair; with its defaults (0.1) about none."""

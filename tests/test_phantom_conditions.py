@@ -43,6 +43,7 @@ def _corr(pair: tuple[np.ndarray, np.ndarray]) -> float:
     return float(np.corrcoef(*pair)[0, 1])
 
 
+@pytest.mark.slow  # renders a phantom session
 def test_mosaic_repeats_patches():
     """texture_mode mosaic: tiles showing the same patch carry the same texture (up to tint),
     wherever they lie on the wall; the procedural wall at the same points does not repeat."""
@@ -75,6 +76,7 @@ def test_mosaic_repeats_patches():
     assert np.array_equal(again.levels[0], cube.levels[0])
 
 
+@pytest.mark.slow  # renders a phantom session
 def test_mosaic_session_renders_and_records(tmp_path):
     cam = default_camera(160, 90)
     a = generate_session(tmp_path / "a", 1, PhantomConfig(**TINY), cam)
@@ -107,6 +109,7 @@ def _predict(d, cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
     return pred.reshape(cam.height, cam.width), rad
 
 
+@pytest.mark.slow  # renders a phantom session
 def test_lens_k1_distortion(tmp_path):
     """lens_k1 -0.2 with a diagonal_fov_deg-only camera: the frames are rendered through
     that lens (wall points land where the OpenCV model of camera.json puts them, far from where
@@ -175,6 +178,7 @@ def test_texture_families():
                                                     scene).levels[0])
 
 
+@pytest.mark.slow  # renders a phantom session
 def test_photometry_and_lesion_kinds_in_a_session(tmp_path):
     """photometric_variation: each session's white balance shifts its channel means as
     recorded; lesion kinds and sites are recorded in lesions.csv; seeded renders repeat."""

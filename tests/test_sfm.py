@@ -482,6 +482,7 @@ def test_weak_frames_are_deferred_only_where_the_chain_holds_without_them():
     assert weak_frames(verified, n, SfmConfig(weak_frame_rel=0)) == set()
 
 
+@pytest.mark.slow
 def test_uncalibrated_distorted_scope_is_self_calibrated(tmp_path_factory, tmp_path):
     """A scope known only by its diagonal FOV (given 70 deg, truly 76) with barrel distortion
     k1 = -0.2: the stage estimates focal length and distortion, undistorts the model and the
