@@ -25,6 +25,7 @@ from typing import Any
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
+from cystomap.io.ply import write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.sfm import consistency, intrinsics, mapping, matching, pairs, quality, scale
 from cystomap.sfm import features as feat
@@ -283,7 +284,7 @@ def run_sfm(
             else:
                 camera.save(out / "camera.json")
             xyz, rgb, _, _ = quality.points_arrays(rec)
-            quality.write_ply(out / "points.ply", xyz, rgb)
+            write_ply(out / "points.ply", xyz, colors=rgb, comment="cystomap sparse cloud")
             timings, cpu_times = timer.totals()
             q = quality.summarise(
                 rec, names, features, matches, result.models, pair_stats, est.to_dict(), timings,

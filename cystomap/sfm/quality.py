@@ -89,23 +89,6 @@ def colour_points(rec: Any, color_dir: Path, num_threads: int, max_frames: int =
     return len(chosen)
 
 
-def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY with float xyz and uchar rgb (readable by open3d and others)."""
-    vertex = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    vertex["x"], vertex["y"], vertex["z"] = xyz.T.astype(np.float32)
-    vertex["red"], vertex["green"], vertex["blue"] = rgb.T
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment cystomap sparse cloud\n"
-        f"element vertex {len(xyz)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(vertex.tobytes())
-
-
 def observation_depths(rec: Any) -> np.ndarray:
     """Depth (camera z) of every observation of every registered image."""
     depths = []
