@@ -111,6 +111,12 @@ class SfmConfig:
     final_ba_max_iterations: int = 100
     # smaller models (separate pieces) are reported; only the largest is written
     min_model_frames: int = 5
+    # self-check by independent halves: the registered frames are mapped again in two
+    # alternating halves, each on its own; a stretch of frames that both put further from the
+    # model's poses than the model's step between frames is drift the pair tests cannot see:
+    # warn = flag it (quality.json consistency, log, report), fail = fail the stage, off = skip
+    # (the check costs about one more incremental mapping)
+    halves_check: str = "warn"
     # frames whose median verified inliers with their video neighbours fall below this share
     # of the typical (median within sequential_max_gap) are "weak" (motion blur, defocus):
     # they are not mapped incrementally but registered to the model of the others
@@ -229,6 +235,8 @@ class SfmConfig:
             problems.append("final_filter_error_px must be >= 0")
         if self.intrinsics not in INTRINSICS_MODES:
             problems.append(f"intrinsics must be one of {', '.join(INTRINSICS_MODES)}")
+        if self.halves_check not in ("warn", "fail", "off"):
+            problems.append("halves_check must be one of warn, fail, off")
         if self.self_calibration_model not in SELF_CALIBRATION_MODELS:
             problems.append("self_calibration_model must be one of "
                             f"{', '.join(SELF_CALIBRATION_MODELS)}")
