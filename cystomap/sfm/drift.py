@@ -14,6 +14,8 @@ centres, so no threshold in model units), the frame is *off*: the two maps do no
 which neighbour a frame is nearest to. A correct model agrees with both halves to a small share
 of a step; the check fails when :data:`MIN_OFF_RUN` consecutive frames of the model are off
 (so in both halves: they alternate), where one half alone can be wrong by its own fault.
+Frames that neither half could place (a stretch held only by pairs too weak for a map of half
+the frames) are counted as unconfirmed: reported, not failed.
 """
 
 from __future__ import annotations
@@ -98,6 +100,11 @@ def compare(model: dict[str, np.ndarray], order: list[str],
                 longest, best = run, start
         elif n in residual:
             run = 0
+    # consecutive frames of the model that neither half placed: not confirmed (not wrong)
+    gap = unplaced = 0
+    for n in order:
+        gap = 0 if n in residual else gap + 1
+        unplaced = max(unplaced, gap)
     vals = np.array(list(residual.values())) if residual else np.zeros(0)
     worst = max(residual, key=residual.__getitem__) if residual else None
     return {
@@ -109,6 +116,8 @@ def compare(model: dict[str, np.ndarray], order: list[str],
         "frames_off": [len(b) for b in off],
         "longest_off_run": longest,
         "off_run_from": best,
+        "frames_unconfirmed": len(order) - len(residual),
+        "longest_unconfirmed_run": unplaced,
         "consistent": longest < MIN_OFF_RUN,
     }
 
