@@ -8,7 +8,7 @@ CORES ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PKGS :=
 
-.PHONY: setup run test test-fast lint browser bench clean
+.PHONY: setup run test test-fast lint browser bench clean config-docs
 
 $(STAMP): pyproject.toml constraints.txt
 	@# open3d needs libusb-1.0-0; Debian's python3 needs python3-venv for `-m venv`.
@@ -55,3 +55,8 @@ bench: setup
 
 clean:
 	rm -rf results logs benchmarks .snakemake
+
+## regenerate the schema's stage sections and the README's config table from the dataclasses
+config-docs: setup
+	$(BIN)/python -m cystomap.configschema --write
+	$(BIN)/python -m cystomap.configdoc --write README.md

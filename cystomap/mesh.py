@@ -15,7 +15,7 @@ function r(direction) about a centre c:
    relax to the ellipsoid over ``hole_decay_deg`` away from the data. The surface is closed
    whatever was seen; the atlas's coverage says what was really seen.
 4. c starts at the ellipsoid's centre and is replaced by the volume centroid of the fitted
-   surface (``centre_iterations`` times).
+   surface (``center_iterations`` times).
 5. The icosphere with its vertices pushed to r (closed, genus 0 by construction) is remeshed to
    even triangles (pymeshlab isotropic remeshing) and kept only if it stays watertight and
    two-manifold.
@@ -98,7 +98,7 @@ class MeshConfig:
     # Points farther than this many robust standard deviations from the fit get no weight.
     reject_k: float = 4.0
     # Refits about the volume centroid of the previous fit.
-    centre_iterations: int = setting(2, ">= 0")
+    center_iterations: int = setting(2, ">= 0")
     # Isotropic remeshing to even triangles (pymeshlab); the edge length is this fraction of
     # the mean radius (0 = keep the radial icosphere mesh).
     remesh_edge_fraction: float = setting(0.03, "[0, 0.5)")
@@ -262,14 +262,14 @@ def fit_closed_surface(
     sphere_v, sphere_f = icosphere(cfg.icosphere_subdivisions)
     lap = sphere_laplacian(sphere_v, sphere_f)
     radii = weights = None
-    for it in range(cfg.centre_iterations + 1):
+    for it in range(cfg.center_iterations + 1):
         radii, weights = fit_radial(points, centre, sphere_v, sphere_f, lap, cfg, base)
         verts = centre + radii[:, None] * sphere_v
         new_centre = volume_centroid(verts, sphere_f)
         shift = float(np.linalg.norm(new_centre - centre))
         log.info("radial fit %d about %s: mean radius %.2f, centroid shift %.3f", it,
                  np.round(centre, 2).tolist(), radii.mean(), shift)
-        if it == cfg.centre_iterations or shift < 1e-3 * radii.mean():
+        if it == cfg.center_iterations or shift < 1e-3 * radii.mean():
             break
         if not base.contains(new_centre):
             break

@@ -46,6 +46,7 @@ from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.glints import glint_mask
 from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.settings import setting, validate
 from cystomap.undistortion import _Geometry
 from cystomap.video import (
     circle_mask,
@@ -70,78 +71,56 @@ class PreprocessConfig:
 
     # Resize factor of the outputs (and of camera.json) relative to the input frames,
     # e.g. 0.375 turns 1280x720 into 480x270.
-    scale: float = 1.0
+    scale: float = setting(1.0, "(0, 4]")
     # Pinhole camera of the undistorted images (principal point and aspect ratio always kept,
     # only the focal length changes): "same" = keep fx, fy, cx, cy (with barrel distortion the
     # far periphery of the source falls outside); "crop" = the focal length at which every output
     # pixel has a source pixel (like getOptimalNewCameraMatrix alpha=0); "full" = every source
     # pixel lands in the output (alpha=1; the unfilled corners are masked out). Invalid output
     # pixels are always masked, so no black border is taken for mucosa.
-    new_camera: str = "same"
+    new_camera: str = setting("same", choices=("same", "crop", "full"))
     # Field-of-view mask: "auto" = detect the lit area from the frames, "full" = whole frame,
     # "circle" = a circle (mask_radius/mask_center, or fitted to the detected FOV rim).
-    mask: str = "auto"
+    mask: str = setting("auto", choices=("auto", "full", "circle"))
     # Circle mode: radius in output pixels; 0 = fit the circle to the detected FOV rim.
-    mask_radius: float = 0.0
+    mask_radius: float = setting(0.0, ">= 0")
     # Circle mode with a radius: centre (x, y) in output pixels; None = the image centre.
     mask_center: tuple[float, float] | None = None
     # Erode the mask by this many output pixels (soft FOV rim, interpolation at its edge).
-    mask_erode_px: int = 3
+    mask_erode_px: int = setting(3, ">= 0")
     # Frames sampled evenly to detect the FOV ("auto" and fitted "circle").
-    mask_samples: int = 50
+    mask_samples: int = setting(50, ">= 1")
     # "auto" mode: FOV pixels whose temporal std over the samples is below mask_static_rel
     # times the typical one (overlaid text, logos, lens dirt) are masked out, so matching does
     # not pair static features; needs 8+ frames, skipped if over 10% of the FOV is static
     # (0 = off).
-    mask_static_rel: float = 0.25
+    mask_static_rel: float = setting(0.25, "[0, 1)")
     # Sigma of the Gaussian illumination estimate, as a fraction of the image diagonal
     # (0 = no brightness levelling).
-    level_sigma: float = 0.08
+    level_sigma: float = setting(0.08, "[0, 1]")
     # The levelling gain is clipped to [1 / level_max_gain, level_max_gain] (dark lumen areas
     # are not amplified into noise).
-    level_max_gain: float = 4.0
+    level_max_gain: float = setting(4.0, ">= 1")
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
-    level_mean: float = 0.0
+    level_mean: float = setting(0.0, "[0, 255]")
     # CLAHE clip limit for the enhanced images (0 = no CLAHE, levelled grey only).
-    clahe_clip: float = 2.0
+    clahe_clip: float = setting(2.0, ">= 0")
     # CLAHE tiles along the longer image side (square tiles).
-    clahe_tiles: int = 8
+    clahe_tiles: int = setting(8, ">= 1")
     # Worker threads (PNG decoding/encoding and OpenCV release the GIL).
-    threads: int = 2
+    threads: int = setting(2, ">= 1")
     # Specular glints (masks/<name>.png per frame, 0 = glint or outside the FOV): a pixel is a
     # glint core when its whiteness (smallest of B, G, R of the levelled frame) lies more than
     # glint_z robust standard deviations (1.4826 MAD) above the frame's median and it is less
     # coloured than the frame's median pixel; the blob grows into connected pixels above half
     # that (its rim) and is dilated by glint_dilate times the image diagonal. 0 = no masks.
-    glint_z: float = 6.0
-    glint_dilate: float = 0.006
+    glint_z: float = setting(6.0, ">= 0")
+    glint_dilate: float = setting(0.006, "[0, 0.1]")
 
     def __post_init__(self) -> None:
-        checks = [
-            (0 < self.scale <= 4, f"scale must be in (0, 4], got {self.scale}"),
-            (self.new_camera in ("same", "crop", "full"),
-             f"new_camera must be 'same', 'crop' or 'full', got {self.new_camera!r}"),
-            (self.mask in ("auto", "full", "circle"),
-             f"mask must be 'auto', 'full' or 'circle', got {self.mask!r}"),
-            (self.mask_radius >= 0, "mask_radius must be >= 0"),
-            (self.mask_center is None or len(self.mask_center) == 2,
-             "mask_center must be [x, y]"),
-            (self.mask_erode_px >= 0, "mask_erode_px must be >= 0"),
-            (self.mask_samples >= 1, "mask_samples must be >= 1"),
-            (0 <= self.mask_static_rel < 1, "mask_static_rel must be in [0, 1)"),
-            (0 <= self.level_sigma <= 1, "level_sigma must be in [0, 1]"),
-            (self.level_max_gain >= 1, "level_max_gain must be >= 1"),
-            (0 <= self.level_mean <= 255, "level_mean must be in [0, 255]"),
-            (self.clahe_clip >= 0, "clahe_clip must be >= 0"),
-            (self.clahe_tiles >= 1, "clahe_tiles must be >= 1"),
-            (self.threads >= 1, "threads must be >= 1"),
-            (self.glint_z >= 0, "glint_z must be >= 0"),
-            (0 <= self.glint_dilate <= 0.1, "glint_dilate must be in [0, 0.1]"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise InputError(f"preprocess: {message}")
-
+        validate(self, "preprocess", {
+            "mask_center [x, y] or null": self.mask_center is None or len(self.mask_center) == 2,
+        })
 
 def preprocess_frames(
     frames_dir: str | Path, out_dir: str | Path, camera: Camera,

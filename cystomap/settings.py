@@ -128,18 +128,20 @@ def _num(x: float) -> str:
 
 def validate(obj: Any, section: str, extra: Mapping[str, bool] | None = None) -> None:
     """Check every field of dataclass ``obj`` declared with :func:`setting` against its range
-    or choices, and the ``extra`` conditions (description → holds); ValueError naming all
-    that fail: ``invalid <section> settings: need …``."""
+    or choices (each item of a tuple field; ``None`` passes), and the ``extra`` conditions
+    (description → holds); ValueError naming all that fail: ``invalid <section> settings: need …``."""
     bad: list[str] = []
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
+        # a list (tuple field) is checked item by item; None (an optional field unset) passes
+        items = value if isinstance(value, tuple) else () if value is None else (value,)
         choices = f.metadata.get("choices")
-        if choices is not None and value not in choices:
+        if choices is not None and any(v not in choices for v in items):
             bad.append(f"{f.name} in ({', '.join(map(str, choices))}), not {value!r}")
         check = f.metadata.get("check")
         if check is not None:
             lo, hi = _parse_check(check)
-            ok = all(_OPS[op](float(value), bound) for op, bound in filter(None, (lo, hi)))
+            ok = all(_OPS[op](float(v), bound) for v in items for op, bound in filter(None, (lo, hi)))
             if not ok:
                 bad.append(f"{_check_text(f.name, check)} (got {value!r})")
     bad += [k for k, ok in (extra or {}).items() if not ok]

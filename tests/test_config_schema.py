@@ -6,29 +6,11 @@ import jsonschema
 import pytest
 import yaml
 
-from cystomap import configdoc
-from cystomap.atlas import AtlasConfig
-from cystomap.compare import CompareConfig
-from cystomap.evaluate import EvalConfig
-from cystomap.frames import FramesConfig
-from cystomap.mesh import MeshConfig
-from cystomap.phantom import PhantomConfig
-from cystomap.preprocess import PreprocessConfig
-from cystomap.report import ReportConfig
+from cystomap import configdoc, configschema
 from cystomap.sessions import PHANTOM_STUDY_KEYS
-from cystomap.sfm import SfmConfig
+from cystomap.settings import setting, validate
 
-SECTIONS = {
-    "frames": FramesConfig,
-    "preprocess": PreprocessConfig,
-    "phantom": PhantomConfig,
-    "evaluate": EvalConfig,
-    "sfm": SfmConfig,
-    "mesh": MeshConfig,
-    "atlas": AtlasConfig,
-    "compare": CompareConfig,
-    "report": ReportConfig,
-}
+SECTIONS = configschema.sections()
 SCHEMA_WORDS = {
     "type", "default", "description", "items", "minItems", "maxItems", "minimum", "maximum",
     "exclusiveMinimum", "exclusiveMaximum", "enum", "pattern", "properties", "required",
@@ -67,6 +49,13 @@ def test_schema_defaults_are_the_dataclass_defaults(schema, section):
     assert schema["$defs"][section].get("additionalProperties") is False
 
 
+def test_every_default_is_valid_under_the_schema(schema):
+    """What Snakemake fills in from the defaults must pass the schema it came from."""
+    defaults = {name: {k: p["default"] for k, p in schema["$defs"][name]["properties"].items()}
+                for name in SECTIONS}
+    jsonschema.Draft202012Validator(schema).validate(defaults)
+
+
 def test_repository_config_is_valid_and_complete(repo, schema):
     config = yaml.safe_load((repo / "config.yaml").read_text())
     jsonschema.Draft202012Validator(schema).validate(config)
@@ -75,3 +64,63 @@ def test_repository_config_is_valid_and_complete(repo, schema):
 def test_readme_config_table_is_up_to_date(repo):
     readme = (repo / "README.md").read_text()
     assert configdoc.block() in readme, "run: python -m cystomap.configdoc --write README.md"
+
+
+def test_schema_file_is_generated_from_the_dataclasses():
+    """The stage sections have one source: the dataclasses (type, default, range, comment)."""
+    assert configschema.SCHEMA.read_text() == configschema.text(), (
+        "run: python -m cystomap.configschema --write && python -m cystomap.configdoc --write README.md")
+
+
+def test_generated_schema_carries_ranges_choices_and_comments():
+    @dataclasses.dataclass(frozen=True)
+    class Demo:
+        # --- a group header, not a description ---
+        # Share of the frames.
+        share: float = setting(0.5, "[0, 1)")
+        level: int = setting(3, "> 0")
+        # The mode.
+        mode: str = setting("a", choices=("a", "b"))
+        # Lengths (mm).
+        sizes: tuple[float, ...] = setting((1.0, 2.0), "> 0")
+        # Kinds.
+        kinds: tuple[str, ...] = setting((), choices=("x", "y"))
+        # Optional centre.
+        center: tuple[float, float] | None = None
+
+        def __post_init__(self) -> None:
+            validate(self, "demo")
+
+    props = configschema.section_schema(Demo, "demo")["properties"]
+    assert props["share"] == {"type": "number", "minimum": 0, "exclusiveMaximum": 1, "default": 0.5,
+                              "description": "Share of the frames."}
+    assert props["level"]["exclusiveMinimum"] == 0 and props["level"]["description"] == "See share."
+    assert props["mode"]["enum"] == ["a", "b"]
+    assert props["sizes"]["items"] == {"type": "number", "exclusiveMinimum": 0}
+    assert props["kinds"]["items"] == {"type": "string", "enum": ["x", "y"]} and "enum" not in props["kinds"]
+    assert props["center"]["type"] == ["array", "null"] and props["center"]["maxItems"] == 2
+    with pytest.raises(ValueError, match=r"sizes > 0 \(got \(1.0, -2.0\)\)"):
+        Demo(sizes=(1.0, -2.0))
+    Demo(center=None)
+
+
+def test_a_field_without_comment_and_no_previous_one_is_an_error():
+    @dataclasses.dataclass
+    class Bare:
+        width: int = 3
+
+    with pytest.raises(ValueError, match="Bare: no comment above field"):
+        configschema.field_docs(Bare)
+
+
+BRITISH_AMERICAN = [("centre", "center"), ("colour", "color"), ("grey", "gray"),
+                    ("neighbour", "neighbor"), ("metre", "meter"), ("analyse", "analyze"),
+                    ("normalise", "normalize"), ("behaviour", "behavior")]
+
+
+def test_config_keys_spell_each_word_one_way(schema):
+    keys = [key for node in [schema, *schema["$defs"].values()] for key, _ in walk(node)]
+    words = [w for key in keys for w in key.split(".")[-1].split("_")]
+    for uk, us in BRITISH_AMERICAN:
+        both = [w for w in words if w.startswith(uk)], [w for w in words if w.startswith(us)]
+        assert not (both[0] and both[1]), f"config keys spell {uk}/{us} both ways: {both}"

@@ -21,73 +21,82 @@ class PhantomConfig:
     purpose and session), so equal configs give bit-identical outputs.
     """
 
+    # Seed of shape, texture, lesions and trajectories.
     seed: int = setting(7, ">= 0")
-    # frames in each session's video
+    # Frames in each session's video.
     n_frames: int = setting(124, ">= 2")
-    # frame rate written into video.mp4 (and truth.json)
+    # Frame rate of the rendered videos.
     fps: float = setting(10.0, "> 0")
-    # overall size (bounding box) of the bladder along world x, y, z, in mm
-    size_mm: tuple[float, float, float] = (170.0, 130.0, 110.0)
-    # diameter of the aperture (bladder neck) into the urethra tube, in mm
-    aperture_mm: float = 40.0
-    # finest texture scale in mm; 0.4 = "low texture" (no fine vessels, coarse grain)
+    # Overall bladder size (mm) along its three axes.
+    size_mm: tuple[float, float, float] = setting((170.0, 130.0, 110.0), "> 0")
+    # Diameter of the aperture to the urethra (mm).
+    aperture_mm: float = setting(40.0, "> 0")
+    # Finest texture scale (mm); 0.4 = low texture, no fine vessels.
     texture_detail_mm: float = setting(0.1, "[0.02, 5]")
-    # diameters of the six (or however many) lesions painted into session 2, in mm
-    lesion_diameters_mm: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
-    # illumination gain of session 2 (multiplies its 8-bit output after auto-exposure)
+    # Diameters (mm) of the lesions painted into session 2.
+    lesion_diameters_mm: tuple[float, ...] = setting((5.0, 10.0, 15.0, 20.0, 25.0, 30.0), "> 0")
+    # Illumination gain of session 2 relative to session 1.
     session2_gain: float = setting(0.85, "> 0")
-    # session 2 deformation magnitude (0.07 = 7 %): anisotropic scale + smooth radial warp
+    # Deformation of session 2 (0.07 = 7 %: anisotropic scale and smooth radial warp).
     deformation: float = setting(0.0, "[0, 0.25]")
-    # maximum motion-blur length in pixels (the fastest frame gets it); 0 = none
+    # Maximum motion-blur length (px); 0 = none.
     motion_blur_px: float = setting(0.0, ">= 0")
-    # small saturated glints where the wet wall faces the camera
+    # Render specular glints.
     specular: bool = False
-    # share of frames replaced by defocused or black frames (poses stay true)
+    # Share of defocused or black frames inserted.
     bad_frame_fraction: float = setting(0.0, "[0, 0.5]")
-    # Gaussian sensor noise, standard deviation in 8-bit DN
+    # Sensor noise (8-bit digital numbers).
     noise_sigma: float = setting(2.0, ">= 0")
-    # code video.mp4 losslessly (FFV1, ~40x larger) instead of with mp4v, whose fixed
-    # quantiser removes the fine low-contrast texture at low resolutions (e.g. 640x360)
+    # Code video.mp4 losslessly (FFV1, about 40x larger) instead of with mp4v, whose fixed
+    # quantiser removes the fine low-contrast texture at low resolutions: at 640x360, mp4v makes
+    # SfM unreliable (40-90 % of frames registered), FFV1 keeps every frame.
     lossless_video: bool = False
-    # relative amplitude of the smooth irregularity of the wall (0 = ellipsoid + neck)
+    # Relative amplitude of the smooth irregularity of the wall (0 = ellipsoid + neck).
     irregularity: float = setting(0.045, "[0, 0.12]")
-    # length of the urethra tube below the aperture, in mm
+    # Length of the urethra tube below the aperture (mm).
     urethra_length_mm: float = setting(30.0, "> 0")
-    # target edge length of the wall triangle mesh, in mm
+    # Target edge length of the true wall's triangle mesh (mm).
     mesh_edge_mm: float = setting(1.5, "[0.3, 5]")
-    # texels per cube-map face edge; 0 = automatic from texture_detail_mm (<= 2048)
-    cube_face_px: int = 0
-    # height of albedo.png / seen.png (width is twice this)
+    # Texels per cube-map face edge of the texture; 0 = from texture_detail_mm (at most 2048).
+    cube_face_px: int = setting(0, "[0, 4096]")
+    # Height of the true albedo.png and seen.png (width is twice this).
     atlas_height: int = setting(1024, "[32, 8192]")
-    # rendering threads (frames rendered concurrently); 0 = os.cpu_count() capped at 2
+    # Frames rendered concurrently; 0 = the machine's cores, at most 2.
     threads: int = setting(0, ">= 0")
-    # wall texture: "procedural" (the baked mucosa) or "mosaic" (the wall tiled with a few
-    # patches of that mucosa, each repeated many times with random rotation, mirroring,
-    # anisotropic stretch and tint: the failure class of a printed photo-mosaic phantom)
+    # Wall texture: "procedural" = the baked mucosa; "mosaic" = the wall tiled with a few patches
+    # of that mucosa, each repeated many times with random rotation, mirroring, anisotropic
+    # stretch and tint (a printed photo-mosaic phantom: the same patch in many places).
     texture_mode: str = setting("procedural", choices=TEXTURE_MODES)
-    # mosaic: number of distinct patches
+    # Mosaic: number of distinct patches.
     mosaic_patches: int = setting(4, "[1, 64]")
-    # mosaic: patch edge length on the wall in mm (tiles are about 0.6x this apart)
+    # Mosaic: patch edge on the wall (mm); tiles lie about 0.6 patch edges apart.
     mosaic_patch_mm: float = setting(25.0, "[3, 80]")
-    # radial distortion k1 of the rendered lens, replacing the camera's (None = the camera's
-    # own); with a diagonal_fov_deg-only camera the pipeline must then estimate it. The
-    # rendered lens is written to camera.json (and truth.json "lens")
-    lens_k1: float | None = None
-    # texture family of the subject ("" = the fixed default wall; "A" pink/fine, "B" pale/
-    # coarse blotches/sparse vessels, "C" red/dense vessels/strong grain): mottling scale and
-    # contrast, vessel density and colour, grain drawn per seed within the family's ranges
+    # Radial distortion k1 of the rendered lens, replacing the camera's (null = the camera's own;
+    # other coefficients and the pinhole part are kept). With a diagonal_fov_deg-only camera, e.g.
+    # -0.2, the pipeline must estimate the distortion; camera.json holds the rendered lens.
+    lens_k1: float | None = setting(None, "[-0.45, 0.3]")
+    # Texture family of the subject; empty = the fixed default wall. A = pink, fine mottling, the
+    # default vessel network; B = pale, coarse strong blotches, sparse faint vessels, little
+    # grain; C = red (inflamed), fine strong mottling, dense dark vessels, strong grain. Mottling
+    # scale and contrast, vessel density and colour and grain are drawn per seed within the
+    # family's ranges (truth.json texture.params).
     texture_family: str = setting("", choices=("", *TEXTURE_FAMILIES))
-    # per-session photometry drawn from the seed (0 = none; 1 = the nominal ranges): white
-    # balance, exposure bias, auto-gain smoothing and flicker, vignetting and fall-off exponents
+    # Per-session photometry drawn from the seed, scaled by this (0 = none, 1 = nominal): white
+    # balance (log-gain std 0.06 per channel), exposure bias (log std 0.15), auto-gain smoothing
+    # weight (0.5 +- 0.35) and flicker (log std 0.02), vignetting exponent (3 -1.5..+2) and
+    # distance fall-off exponent (2 +- 0.4); recorded in truth.json photometry.
     photometric_variation: float = setting(0.0, "[0, 3]")
-    # kind of each lesion (one per lesion_diameters_mm, or a list drawn from per lesion, seeded):
-    # painted (papillary look, flat: the default), papillary (raised: relief in the geometry),
-    # cis (flat red velvety patch, low contrast), scar (pale), perivascular (red patch beside
-    # a vessel that is in both sessions); () = all painted
-    lesion_kinds: tuple[str, ...] = ()
-    # site of each lesion (same rule): any, seam (across the atlas's +-180 deg azimuth seam),
-    # pole (over the top pole of the atlas), neck (just beside the aperture); () = all any
-    lesion_sites: tuple[str, ...] = ()
+    # Kind of each lesion: one per lesion_diameters_mm, or else drawn per lesion from this list
+    # (seeded); empty = all painted. painted = papillary look, flat (colour only); papillary = the
+    # same, raised into the cavity (relief 0.35 x diameter, at most 6 mm, in session 2's
+    # geometry); cis = flat red velvety low-contrast patch; scar = pale elongated patch;
+    # perivascular = red patch beside a vessel shown in both sessions. lesions.csv records kind,
+    # site and height_mm.
+    lesion_kinds: tuple[str, ...] = setting((), choices=LESION_KINDS)
+    # Site of each lesion (same rule as lesion_kinds); empty = all any. seam = across the atlas's
+    # +-180 deg azimuth seam; pole = over the top pole; neck = its edge about 4 deg beyond the
+    # aperture.
+    lesion_sites: tuple[str, ...] = setting((), choices=LESION_SITES)
 
     def __post_init__(self) -> None:
         problems = []
@@ -95,23 +104,13 @@ class PhantomConfig:
             validate(self, "phantom")
         except ValueError as exc:
             problems.append(str(exc))
-        if len(self.size_mm) != 3 or min(self.size_mm) <= 0:
-            problems.append("size_mm must be three positive lengths")
-        elif not 0 < self.aperture_mm < 0.6 * min(self.size_mm):
-            problems.append("aperture_mm must be positive and well below the smallest size")
-        if any(d <= 0 for d in self.lesion_diameters_mm):
-            problems.append("lesion_diameters_mm must be positive")
+        if len(self.size_mm) == 3 and not self.aperture_mm < 0.6 * min(self.size_mm):
+            problems.append("aperture_mm must be well below the smallest size")
         if len(self.size_mm) == 3 and any(
             d > 0.35 * min(self.size_mm) for d in self.lesion_diameters_mm
         ):
             problems.append("lesion_diameters_mm too large for the bladder")
-        if self.cube_face_px and not (64 <= self.cube_face_px <= 4096 and self.cube_face_px % 16 == 0):
+        if self.cube_face_px and not (64 <= self.cube_face_px and self.cube_face_px % 16 == 0):
             problems.append("cube_face_px must be 0 or a multiple of 16 in [64, 4096]")
-        for key, names in (("lesion_kinds", LESION_KINDS), ("lesion_sites", LESION_SITES)):
-            bad = [k for k in getattr(self, key) if k not in names]
-            if bad:
-                problems.append(f"{key}: unknown {', '.join(bad)} (known: {', '.join(names)})")
-        if self.lens_k1 is not None and not -0.45 <= self.lens_k1 <= 0.3:
-            problems.append("lens_k1 must be null or in [-0.45, 0.3]")
         if problems:
             raise InputError("phantom config: " + "; ".join(problems))

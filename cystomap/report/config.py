@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from cystomap.settings import setting, validate
+
 
 @dataclass(frozen=True)
 class ReportConfig:
@@ -11,24 +13,24 @@ class ReportConfig:
 
     # Images (atlases, coverage, difference and change maps) are embedded at most this wide
     # (pixels; never upscaled): the 2048-pixel atlas at half size keeps the report small.
-    image_width: int = 1024
+    image_width: int = setting(1024, "[64, 8192]")
     # JPEG quality of the embedded images (an image is embedded as PNG instead when that is
     # smaller, e.g. the flat colours of the coverage map).
-    jpeg_quality: int = 85
+    jpeg_quality: int = setting(85, "[1, 100]")
     # Vertices of each 3-D view (at most): the surface mesh is subdivided (4x the vertices
     # per step, more colour detail) while it stays within this, or simplified to it; colours
     # are sampled from the atlas at each vertex. Below 65536, face indices take 16 bits.
-    model_vertices: int = 65000
+    model_vertices: int = setting(65000, "[500, 1000000]")
     # The changes table lists at most this many regions (the highest scores; the rest are
     # counted).
-    max_table_rows: int = 100
+    max_table_rows: int = setting(100, ">= 1")
     # Per comparison, at most this many changes (the highest scores) get a card with the
     # crops and frames compare found them back in (findback.csv, findback/).
-    max_change_cards: int = 20
+    max_change_cards: int = setting(20, ">= 0")
     # The summary (the first page of the printed report and of report.pdf) lists at most this
     # many changes: the highest scores of all comparisons (the rest are counted); about 30 rows
     # fit on its A4 page next to five sessions.
-    summary_rows: int = 20
+    summary_rows: int = setting(20, ">= 1")
     # report.pdf (rule report_pdf: the summary page, then a page per change card) for every
     # subject among the workflow's default targets. It needs headless Chromium (`make browser`
     # installs Debian's); without it the rule fails naming what is missing. Off: a fresh machine's
@@ -38,15 +40,4 @@ class ReportConfig:
     chromium: str = "chromium"
 
     def __post_init__(self) -> None:
-        checks = {
-            "64 <= image_width <= 8192": 64 <= self.image_width <= 8192,
-            "1 <= jpeg_quality <= 100": 1 <= self.jpeg_quality <= 100,
-            "500 <= model_vertices <= 1000000": 500 <= self.model_vertices <= 1_000_000,
-            "max_table_rows >= 1": self.max_table_rows >= 1,
-            "max_change_cards >= 0": self.max_change_cards >= 0,
-            "summary_rows >= 1": self.summary_rows >= 1,
-            "chromium is not empty": bool(self.chromium.strip()),
-        }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"invalid report settings: need {', '.join(bad)}")
+        validate(self, "report", {"chromium is not empty": bool(self.chromium.strip())})
