@@ -67,8 +67,9 @@ def compare(model: dict[str, np.ndarray], order: list[str],
     residual: dict[str, float] = {}
     compared = []
     for pieces in halves:
-        bad: set[str] = set()
-        seen = 0
+        # a frame two pieces of one half hold is placed by the one that agrees better: pieces
+        # of one half that disagree with each other are that half's own fault
+        best: dict[str, float] = {}
         for piece in pieces:
             common = [n for n in order if n in piece]
             if len(common) < 3 or step <= 0:
@@ -79,17 +80,15 @@ def compare(model: dict[str, np.ndarray], order: list[str],
             if sim is None:
                 continue
             err = np.linalg.norm(sim.apply(src) - dst, axis=1) / step
-            seen += len(common)
             for n, e in zip(common, err, strict=True):
-                residual[n] = max(residual.get(n, 0.0), float(e))
-                if e > 1.0:
-                    bad.add(n)
-        off.append(bad)
-        compared.append(seen)
+                best[n] = min(best.get(n, np.inf), float(e))
+        residual.update(best)
+        off.append({n for n, e in best.items() if e > 1.0})
+        compared.append(len(best))
     # consecutive frames of the model off, alternately in one half and the other: both maps,
     # made from disjoint frames, put that stretch elsewhere than the model does
     run = longest = 0
-    start = best = None
+    start = first = None
     offs = set().union(*off) if off else set()
     for n in order:
         if n in offs:
@@ -97,7 +96,7 @@ def compare(model: dict[str, np.ndarray], order: list[str],
             if run == 1:
                 start = n
             if run > longest:
-                longest, best = run, start
+                longest, first = run, start
         elif n in residual:
             run = 0
     # consecutive frames of the model that neither half placed: not confirmed (not wrong)
@@ -115,7 +114,7 @@ def compare(model: dict[str, np.ndarray], order: list[str],
         "worst_frame": worst,
         "frames_off": [len(b) for b in off],
         "longest_off_run": longest,
-        "off_run_from": best,
+        "off_run_from": first,
         "frames_unconfirmed": len(order) - len(residual),
         "longest_unconfirmed_run": unplaced,
         "consistent": longest < MIN_OFF_RUN,
