@@ -668,3 +668,25 @@ def test_independent_halves_flag_a_drifted_stretch():
         wrong[k] = wrong[k] + 5 * step
     both = compare(good, order, [[wrong, *halves[0]], halves[1]])
     assert both["consistent"] and both["frames_off"] == [0, 0], both
+
+
+def test_drift_flag_warns_or_fails_the_stage(tmp_path):
+    """A model the halves contradict: flagged in the figures (warn, the default), or the
+    stage fails with the place named and what reconstructed left beside the outputs (fail)."""
+    from cystomap.sfm.pipeline import _judge_halves
+
+    halves = {"checked": True, "consistent": False, "longest_off_run": 4,
+              "off_run_from": "f000027.png", "residual_max_steps": 2.5}
+    check = {"consistent": True, "halves": halves}
+    failed = tmp_path / "sfm.failed"
+    _judge_halves(check, SfmConfig(), failed, ["f000027.png"], None, {})
+    assert check["consistent"] is False and "f000027.png" in check["reason"]
+    assert not failed.exists()
+    with pytest.raises(StageError, match=r"4 consecutive frames from f000027\.png"):
+        _judge_halves({"consistent": True, "halves": halves},
+                      from_mapping(SfmConfig, {"halves_check": "fail"}, "sfm"), failed,
+                      ["f000027.png"], None, {})
+    assert json.loads((failed / "quality.json").read_text())["failed"] is True
+    ok = {"consistent": True, "halves": {**halves, "consistent": True}}
+    _judge_halves(ok, SfmConfig(), failed, [], None, {})
+    assert ok["consistent"] is True and "reason" not in ok
