@@ -456,3 +456,9 @@ def test_sfm_self_check_in_words():
     text, weak = consistency_text({"loop_pairs": 40, "loop_pairs_agreeing": 9,
                                    "weakest_seam_share": 0.8, "seams_weak": [], "consistent": True})
     assert "9 of 40" in text and weak
+    # independent halves: drift flagged in words and as weak (cystomap/sfm/drift.py)
+    halves = {"checked": True, "consistent": False, "longest_off_run": 6, "residual_max_steps": 3.2}
+    text, weak = consistency_text({"loop_pairs": 58, "loop_pairs_agreeing": 58,
+                                   "weakest_seam_share": 1.0, "seams_weak": [],
+                                   "consistent": False, "halves": halves})
+    assert "6 consecutive frames elsewhere (drift)" in text and "3.2 frame steps" in text and weak

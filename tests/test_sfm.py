@@ -91,6 +91,9 @@ def test_small_session_registers_accurately(small_session, tmp_path):
     assert c["consistent"] and c["seams_broken"] == [] and c["weakest_seam_share"] > 0.5, c
     assert c["loop_pairs"] > 20 and c["loop_agreeing_share"] > 0.8, c
     assert q["final_adjustment"]["loops"]["loop_pairs_accepted"] > 20
+    # two maps of alternate frames agree with the model (cystomap/sfm/drift.py)
+    h = c["halves"]
+    assert h["checked"] and h["consistent"] and h["residual_median_steps"] < 0.5, h
 
     report = evaluate_session(truth_dir, out)
     traj = report["trajectory"]
@@ -403,6 +406,7 @@ def test_glints_blur_and_bad_frames_register_in_one_model(glint_session, tmp_pat
     assert reg["n_registered_bad"] <= 1, reg  # a black frame has nothing to register with
     assert traj["rmse_mm"] < RMSE_GLINT, traj
     assert traj["scale_error"] < 0.02, traj
+    assert q["consistency"]["halves"]["consistent"], q["consistency"]["halves"]
 
 
 def _two_pieces(pre: Path, root: Path) -> Path:
@@ -542,3 +546,148 @@ def test_working_size_follows_the_lit_field_of_view(tmp_path):
     assert lit_extent(None, cam) == 1920
     assert working_scale(cam, cfg, lit_extent(None, cam)) == pytest.approx(1 / 3)
     assert working_scale(cam, from_mapping(SfmConfig, {"max_image_size": 0}, "sfm"), 759) == 1.0
+
+
+def _synthetic_model(tmp: Path, n_frames: int = 12) -> tuple:
+    """A synthetic COLMAP model with its database (matches of every pair) and frame names in
+    order."""
+    import pycolmap
+
+    opts = pycolmap.SyntheticDatasetOptions()
+    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, n_frames, 400
+    pycolmap.set_random_seed(0)
+    db = pycolmap.Database.open(str(tmp / "db.db"))
+    rec = pycolmap.synthesize_dataset(opts, db)
+    db.close()
+    names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    return rec, tmp / "db.db", names
+
+
+def test_piece_sharing_frames_is_joined_and_a_contradicting_join_undone(tmp_path):
+    """Two pieces of one mapping that share two frames (the second moved by a similarity, as
+    its own mapping would place it): joined into one model at the right poses; a guard that
+    sees a new contradiction undoes the join."""
+    import pycolmap
+
+    from cystomap.sfm import mapping, pieces
+
+    rec, db, names = _synthetic_model(tmp_path)
+    by_name = {rec.image(i).name: i for i in rec.reg_image_ids()}
+    truth = {n: np.asarray(rec.image(by_name[n]).projection_center()) for n in names}
+    main, piece = pycolmap.Reconstruction(rec), pycolmap.Reconstruction(rec)
+    for k, n in enumerate(names):
+        if k >= 8:
+            main.deregister_frame(main.image(by_name[n]).frame_id)
+        if k < 6:
+            piece.deregister_frame(piece.image(by_name[n]).frame_id)
+    piece.transform(pycolmap.Sim3d(2.5, pycolmap.Rotation3d(np.array([0.3, -0.2, 0.5])),
+                                   np.array([4.0, -1.0, 2.0])))
+    cfg = SfmConfig()
+    opts = mapping.pipeline_options(cfg, False, tmp_path)
+    joined, left, fig = pieces.join(db, pycolmap.Reconstruction(main), [piece], names,
+                                    set(names), opts, cfg, False, lambda r: 0)
+    assert joined.num_reg_images() == len(names) and not left and fig["joined"] == 1, fig
+    err = [np.linalg.norm(np.asarray(joined.image(by_name[n]).projection_center()) - truth[n])
+           for n in names]
+    assert max(err) < 1e-3 * np.ptp(np.array(list(truth.values())), axis=0).max(), err
+    count = iter(range(100))
+    undone, left, fig = pieces.join(db, main, [piece], names, set(names), opts, cfg, False,
+                                    lambda r: next(count))
+    assert undone.num_reg_images() == 8 and len(left) == 1 and fig["undone"] == 1, fig
+
+
+def test_pose_similarity_of_shared_frames():
+    """The similarity from the shared frames' poses alone (little parallax: too few shared
+    3-D points agree) maps the piece's cameras onto the model's."""
+    import tempfile
+
+    import pycolmap
+
+    from cystomap.sfm.pieces import _pose_similarity
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rec, _, _ = _synthetic_model(Path(tmp))
+    piece = pycolmap.Reconstruction(rec)
+    piece.transform(pycolmap.Sim3d(0.4, pycolmap.Rotation3d(np.array([-0.7, 0.1, 0.2])),
+                                   np.array([1.0, 2.0, -3.0])))
+    shared = set(sorted(rec.reg_image_ids())[5:8])
+    sim = _pose_similarity(piece, rec, shared)
+    assert sim is not None and sim.scale == pytest.approx(2.5, rel=1e-6)
+    piece.transform(sim)
+    for i in rec.reg_image_ids():
+        assert np.allclose(piece.image(i).projection_center(), rec.image(i).projection_center(),
+                           atol=1e-6)
+    assert _pose_similarity(piece, rec, set(sorted(rec.reg_image_ids())[:1])) is None
+
+
+def test_independent_halves_flag_a_drifted_stretch():
+    """A model whose stretch of 8 frames is bent away by 3 frame steps: two maps of
+    alternate halves (here the true trajectory, each in its own similarity frame and noise
+    of 5 % of a step) flag it; the true model with the same noise passes, and so does a model
+    with one half's frame placed badly (one frame, not a stretch)."""
+    from cystomap.sfm.drift import MIN_OFF_RUN, compare
+
+    rng = np.random.default_rng(3)
+    n = 60
+    t = np.linspace(0, 3 * np.pi, n)
+    truth = np.c_[20 * np.cos(t), 20 * np.sin(t), 5 * t]  # a helix, step about 1.9
+    step = np.median(np.linalg.norm(np.diff(truth, axis=0), axis=1))
+    order = [f"f{k:06d}.png" for k in range(n)]
+
+    def half(k0: int, pieces: int = 2) -> list[dict[str, np.ndarray]]:
+        ks = list(range(k0, n, 2))
+        out = []
+        for part in np.array_split(ks, pieces):  # each piece in its own frame
+            a = rng.normal(size=3)
+            from scipy.spatial.transform import Rotation
+
+            r = Rotation.from_rotvec(a).as_matrix()
+            out.append({order[k]: 0.7 * r @ (truth[k] + rng.normal(0, 0.05 * step, 3)) + a
+                        for k in part})
+        return out
+
+    halves = [half(0), half(1)]
+    good = {order[k]: truth[k] + rng.normal(0, 0.05 * step, 3) for k in range(n)}
+    ok = compare(good, order, halves)
+    assert ok["consistent"] and ok["residual_max_steps"] < 0.5, ok
+    bent = dict(good)
+    for k in range(40, 48):
+        bent[order[k]] = truth[k] + np.array([0.0, 0.0, 3 * step * (k - 39) / 8])
+    bad = compare(bent, order, halves)
+    assert not bad["consistent"] and bad["longest_off_run"] >= MIN_OFF_RUN, bad
+    assert bad["off_run_from"] in order[40:48], bad
+    one = [dict(h) for h in halves[0]], halves[1]
+    key = order[20]
+    piece = next(p for p in one[0] if key in p)
+    piece[key] = piece[key] + 3 * step
+    single = compare(good, order, [one[0], one[1]])
+    assert single["consistent"] and single["frames_off"][0] >= 1, single
+    # a wrong piece of one half beside one that agrees over the same frames: that half's
+    # fault, not the model's (seen on a good full-size model: 12 frames 4.6 steps off)
+    wrong = {k: v * 1.0 for k, v in halves[0][0].items()}
+    for k in list(wrong)[5:15]:
+        wrong[k] = wrong[k] + 5 * step
+    both = compare(good, order, [[wrong, *halves[0]], halves[1]])
+    assert both["consistent"] and both["frames_off"] == [0, 0], both
+
+
+def test_drift_flag_warns_or_fails_the_stage(tmp_path):
+    """A model the halves contradict: flagged in the figures (warn, the default), or the
+    stage fails with the place named and what reconstructed left beside the outputs (fail)."""
+    from cystomap.sfm.pipeline import _judge_halves
+
+    halves = {"checked": True, "consistent": False, "longest_off_run": 4,
+              "off_run_from": "f000027.png", "residual_max_steps": 2.5}
+    check = {"consistent": True, "halves": halves}
+    failed = tmp_path / "sfm.failed"
+    _judge_halves(check, SfmConfig(), failed, ["f000027.png"], None, {})
+    assert check["consistent"] is False and "f000027.png" in check["reason"]
+    assert not failed.exists()
+    with pytest.raises(StageError, match=r"4 consecutive frames from f000027\.png"):
+        _judge_halves({"consistent": True, "halves": halves},
+                      from_mapping(SfmConfig, {"halves_check": "fail"}, "sfm"), failed,
+                      ["f000027.png"], None, {})
+    assert json.loads((failed / "quality.json").read_text())["failed"] is True
+    ok = {"consistent": True, "halves": {**halves, "consistent": True}}
+    _judge_halves(ok, SfmConfig(), failed, [], None, {})
+    assert ok["consistent"] is True and "reason" not in ok

@@ -134,6 +134,13 @@ def consistency_text(c: dict[str, Any]) -> tuple[str, bool]:
     if seam is not None:
         parts.append(f"at least {100 * seam:.0f} % of the frame pairs across any point of the "
                      "video agree")
+    halves = c.get("halves") if isinstance(c.get("halves"), dict) else {}
+    if halves.get("checked"):
+        worst = _num(halves.get("residual_max_steps"))
+        parts.append("two maps of alternate frames " + (
+            "agree with it" if halves.get("consistent", True) else
+            f"place {halves.get('longest_off_run')} consecutive frames elsewhere (drift)")
+            + (f" (at most {worst:.1f} frame steps apart)" if worst is not None else ""))
     weak = bool(loops and agree is not None and agree < 0.5 * loops) or bool(c.get("seams_weak"))
     return "; ".join(parts) or "not checked", weak or c.get("consistent") is False
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from cystomap.settings import setting, validate
 
 INTRINSICS_MODES = ("auto", "fixed", "refine")
+HALVES_CHECK_MODES = ("warn", "fail", "off")
 #: COLMAP camera models of self-calibration; all but SIMPLE_PINHOLE estimate lens distortion.
 SELF_CALIBRATION_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE")
 
@@ -114,6 +115,12 @@ class SfmConfig:
     final_ba_max_iterations: int = setting(100, ">= 1")
     # smaller models (separate pieces) are reported; only the largest is written
     min_model_frames: int = setting(5, ">= 2")
+    # self-check by independent halves: the registered frames are mapped again in two
+    # alternating halves, each on its own; a stretch of frames that both put further from the
+    # model's poses than the model's step between frames is drift the pair tests cannot see:
+    # warn = flag it (quality.json consistency, log, report), fail = fail the stage, off = skip
+    # (the check costs about one more incremental mapping)
+    halves_check: str = setting("warn", choices=HALVES_CHECK_MODES)
     # frames whose median verified inliers with their video neighbours fall below this share
     # of the typical (median within sequential_max_gap) are "weak" (motion blur, defocus):
     # they are not mapped incrementally but registered to the model of the others

@@ -192,20 +192,26 @@ def write_pairs(database: Path, names: list[str], geoms: list[PairGeometry]) -> 
         db.close()
 
 
-def _merge(rec: Any, database: Path, names: list[str], frames: set[int], cfg: SfmConfig,
-           tri_options: Any) -> int:
-    """Triangulate ``frames`` again with the database's correspondences and merge tracks."""
+def open_mapper(database: Path, min_num_matches: int) -> Any:
+    """A COLMAP incremental mapper on the correspondences of ``database`` (pairs with at least
+    ``min_num_matches`` verified matches)."""
     import pycolmap
 
     cache_opts = pycolmap.DatabaseCacheOptions()
-    cache_opts.min_num_matches = cfg.min_num_inliers
+    cache_opts.min_num_matches = min_num_matches
     db = pycolmap.Database.open(str(database))
     try:
         cache = pycolmap.DatabaseCache.create(db, cache_opts)
     finally:
         db.close()
+    return pycolmap.IncrementalMapper(cache)
+
+
+def _merge(rec: Any, database: Path, names: list[str], frames: set[int], cfg: SfmConfig,
+           tri_options: Any) -> int:
+    """Triangulate ``frames`` again with the database's correspondences and merge tracks."""
     by_name = {rec.image(i).name: i for i in rec.reg_image_ids()}
-    mapper = pycolmap.IncrementalMapper(cache)
+    mapper = open_mapper(database, cfg.min_num_inliers)
     mapper.begin_reconstruction(rec)
     for k in sorted(frames):
         mapper.triangulate_image(tri_options, by_name[names[k]])
@@ -303,6 +309,7 @@ def figures(rec: Any, names: list[str], geoms: dict[Pair, PairGeometry], chain: 
         "weakest_seam_share": round(min(shares), 4) if shares else None,
         "seams_broken": [_seam_names(s, names) for s in broken],
         "seams_weak": [_seam_names(s, names) for s in weak[:20]],
+        "seams_weak_count": len(weak),
         "consistent": not broken,
     }
     return fig, broken, agr

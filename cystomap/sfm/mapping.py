@@ -156,6 +156,7 @@ def reconstruct(
     mask_path: Path | None = None, masks_dir: Path | None = None, weak: set[int] | None = None,
     close_loops: Callable[[Any, Any], dict[str, Any]] | None = None,
     undistort: Callable[[Any], tuple[Path, Path | None]] | None = None,
+    guard: Callable[[Any], int] | None = None,
 ) -> MappingResult | None:
     """Map the keyframes ``key`` (indices into ``names``) that are not ``weak`` incrementally,
     register every other frame to the largest model (the weak ones, the other keyframes and
@@ -168,7 +169,9 @@ def reconstruct(
     With ``undistort`` (self-calibrated distortion) the model is made pinhole before
     densification (it returns the undistorted enhanced frames and mask; the per-frame glint
     masks, drawn on the distorted frames, are then not used), and the final adjustment keeps
-    the intrinsics it was undistorted with.
+    the intrinsics it was undistorted with. With ``guard`` (places where a model contradicts
+    its frame pairs), the other models that share frames with the largest are joined to it
+    when that adds no such place (:func:`cystomap.sfm.pieces.join`).
     ``None`` when no model of at least ``min_model_frames`` was found."""
 
     from cystomap.sfm.densify import densify
@@ -182,20 +185,20 @@ def reconstruct(
         log.info("mapping: %d weak frame(s) (blur) are registered after the others: %s",
                  len(key) - len(mapped), [names[i] for i in key if i not in mapped][:20])
     attempt = _map_and_extend(database, color_dir, work_dir / "models", cfg, refine, names,
-                              mapped, key)
+                              mapped, key, guard)
     if len(mapped) < len(key) and (attempt is None or attempt[1]):
         # sharp frames first did not give one model: the weak frames may be the only links
         # (blur everywhere); map them together with the others too, keep the larger model
         log.info("mapping: again with the weak frames mapped together with the others")
         plain = _map_and_extend(database, color_dir, work_dir / "models_all", cfg, refine,
-                                names, key, key)
+                                names, key, key, guard)
         if plain is not None and (attempt is None
                                   or plain[0].num_reg_images() > attempt[0].num_reg_images()):
             attempt = plain
             weak = set()
     if attempt is None:
         return None
-    rec, others, added = attempt
+    rec, others, added, joined = attempt
     loops = (close_loops(rec, pipeline_options(cfg, refine, color_dir).get_triangulation())
              if close_loops is not None else {})
     if undistort is not None:
@@ -211,6 +214,7 @@ def reconstruct(
         dense = densify(rec, enhanced_dir, mask, cfg, stride, masks_dir).to_dict()
     final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
+    final["pieces_joined"] = joined
     final["weak_frames"] = sorted(names[i] for i in weak)
     final["densification"] = dense
     final["loops"] = loops
@@ -224,13 +228,15 @@ def reconstruct(
 
 
 def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, refine: bool,
-                    names: list[str], mapped: list[int], key: list[int]
-                    ) -> tuple[Any, list[Any], int] | None:
+                    names: list[str], mapped: list[int], key: list[int],
+                    guard: Callable[[Any], int] | None = None,
+                    ) -> tuple[Any, list[Any], int, dict[str, Any]] | None:
     """Incremental mapping of ``mapped`` (indices into ``names``), then every other frame
     registered to the largest model (keyframes ``key`` among them with a local bundle
     adjustment each, as the mapper would: they extend the model rather than fill it in):
     (largest model, the other models it did not absorb, frames added); None when no model
-    was started."""
+    was started. With ``guard``, the other models are then joined where they can be
+    (:func:`cystomap.sfm.pieces.join`; its figures are the tuple's last item)."""
     import pycolmap
 
     pycolmap.set_random_seed(cfg.seed)
@@ -258,7 +264,17 @@ def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, 
     if len(others) < len(ordered) - 1:
         log.info("mapping: %d other model(s) joined the largest through their frames",
                  len(ordered) - 1 - len(others))
-    return rec, others, added
+    joined: dict[str, Any] = {}
+    if guard is not None and others:
+        from cystomap.sfm.pieces import join
+
+        rec, others, joined = join(database, rec, others, names, {names[i] for i in key}, opts,
+                                   cfg, refine, guard)
+        registered = {rec.image(i).name for i in rec.reg_image_ids()}
+        others = [r for r in others
+                  if not {r.image(i).name for i in r.reg_image_ids()} <= registered]
+        added = rec.num_reg_images() - before
+    return rec, others, added, joined
 
 
 def register_rest(database: Path, rec: Any, names: list[str], opts: Any,

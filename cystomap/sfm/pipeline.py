@@ -27,7 +27,7 @@ from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.io.ply import write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
-from cystomap.sfm import consistency, intrinsics, mapping, matching, pairs, quality, scale
+from cystomap.sfm import consistency, drift, intrinsics, mapping, matching, pairs, quality, scale
 from cystomap.sfm import features as feat
 from cystomap.sfm.config import SfmConfig
 
@@ -208,10 +208,17 @@ def run_sfm(
             loops["bridged_pieces"] = len(held.others)
             return out
 
+        def contradictions(rec: Any) -> int:
+            # places (seams) where the chain pairs contradict the model: a piece joined by
+            # the frames it shares with the model must not add one (cystomap/sfm/pieces.py)
+            fig, _, _ = consistency.figures(rec, names, geoms, chain, tried, cfg)
+            return len(fig["seams_broken"]) + fig["seams_weak_count"]
+
         def run(hook: Any, sub: str) -> mapping.MappingResult | None:
             return mapping.reconstruct(database, color_dir, work / sub, cfg, camera.calibrated,
                                        names, key, enhanced, mask, masks_dir, weak,
-                                       undistort=undistort, close_loops=hook)
+                                       undistort=undistort, close_loops=hook,
+                                       guard=contradictions)
 
         with timer.step("mapping"):
             try:
@@ -258,6 +265,11 @@ def run_sfm(
         with timer.step("loops"):
             check = consistency.self_check(rec, names, geoms, chain, tried, cfg)
             check["loop_mode"] = mode
+        if cfg.halves_check != "off":
+            with timer.step("halves"):
+                check["halves"] = drift.halves_check(database, color_dir, work / "halves", rec,
+                                                     names, key, cfg, refine)
+            _judge_halves(check, cfg, failed, names, result, pair_stats)
         mapping.as_pinhole(rec)
         if undistort is not None:
             color_dir = undistort.color_dir
@@ -311,6 +323,26 @@ def run_sfm(
                     "; ".join(f"{p['frames']} frames {p['first']}..{p['last']}"
                               for p in q["other_models"]))
     return out_dir
+
+
+def _judge_halves(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: list[str],
+                  result: mapping.MappingResult, pair_stats: dict[str, int]) -> None:
+    """Flag (warn) or fail (``halves_check: fail``) a model the independent halves contradict
+    (cystomap/sfm/drift.py)."""
+    h = check["halves"]
+    if h.get("consistent", True):
+        return
+    check["consistent"] = False
+    check["reason"] = (f"drift: {h['longest_off_run']} consecutive frames from "
+                       f"{h['off_run_from']} are placed more than one frame step "
+                       f"({h['residual_max_steps']} steps at most) from where two maps of "
+                       f"disjoint halves of the frames put them")
+    message = f"sfm self-check: the model {check['reason']}; its poses there are not reliable"
+    if cfg.halves_check == "fail":
+        _write_failed(failed, message, names, result, pair_stats)
+        raise StageError(f"{message}; details in {failed}")
+    log.warning("%s (flagged in quality.json consistency; sfm.halves_check: fail would fail "
+                "the stage)", message)
 
 
 class _HoldBack(Exception):
