@@ -159,7 +159,11 @@ def test_estimate_from_the_entry_and_the_overrides() -> None:
     est = estimate(*_entry(), FRAME.origin, rays)
     assert est.neck @ FRAME.neck > math.cos(math.radians(0.5))
     assert est.anterior @ FRAME.anterior > math.cos(math.radians(0.5))
-    assert "entry" in est.source
+    assert "entry" in est.source and "still in the urethra" in est.source
+    # a recording that starts inside the wall: the entry path followed back to it
+    inside = estimate(*_entry(skip=3), FRAME.origin, rays)
+    assert inside.neck @ FRAME.neck > math.cos(math.radians(0.5))
+    assert "path followed back" in inside.source
     # the scope entered rolled by 90 deg (image up = patient's left): given, it is undone
     rolled = estimate(*_entry(90.0), FRAME.origin, rays)
     assert rolled.anterior @ FRAME.left > 0.99
@@ -226,7 +230,7 @@ def test_changes_and_landmarks_have_their_region(pair: dict[str, Path], tmp_path
     compare_sessions(SessionPaths.from_root(a), SessionPaths.from_root(b), out,
                      CompareConfig(), landmarks=[Landmark("lesion1", point=site)])
     table = pd.read_csv(out / "changes.csv")
-    assert {"region", "clock", "distance_from_neck_mm"} <= set(table.columns)
+    assert {"region", "clock", "distance_from_neck_mm", "straddles"} <= set(table.columns)
     score = evaluate_changes(b / "truth", b / "sfm", out / "changes.csv")["lesions"]
     assert score["n_matched"] >= 5
     assert score["region_accuracy"] == 1.0, score["lesions"]

@@ -24,7 +24,9 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   (CIE76 ΔE*ab between A's and B's mean colours over the region); then where it is in B's
   anatomical frame (:mod:`cystomap.anatomy`, from B's atlas.json): ``region`` (standard
   bladder region), ``clock`` (o'clock seen from the neck, 12 = anterior) and
-  ``distance_from_neck_mm`` (on the wall); sorted by score;
+  ``distance_from_neck_mm`` (on the wall), ``straddles`` (the other regions its extent covers
+  when it lies on a border, "; "-joined; :data:`cystomap.anatomy.STRADDLE_RULE`); sorted by
+  score;
 * ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
   ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
   change, black = not compared (not seen by both, or far from every inlier match);
