@@ -7,7 +7,8 @@ barycentre), ``neck`` (unit direction from the origin to the bladder neck) and `
 
 Estimated from the scope's entry (:func:`estimate`): the first registered frames look from
 the urethra through the neck into the bladder, so the camera of the leading frames that is
-farthest out relative to the wall (radially from the origin) gives the neck direction; while
+farthest out relative to the wall (radially from the origin), when it is beyond the wall (in
+the urethra), gives the neck direction, else their path followed back to the wall; while
 the scope enters it is held upright, the image's up direction being the patient's anterior:
 each entry frame's view direction ``v`` and image-up ``u`` span the plane that contains the
 anterior, and the anterior is the direction of that plane orthogonal to the neck,
@@ -175,10 +176,51 @@ def neck_distance(anatomy: Anatomy, rays: Any, points: Any, neck_point: Any = No
     return out
 
 
+def covered_regions(anatomy: Anatomy, points: Any, diameters: Any,
+                    rings: int = 4, per_ring: int = 36) -> list[list[str]]:
+    """The regions a patch of each diameter centred at each point covers: the regions of the
+    directions (from the origin) within its angular radius (half the diameter over its
+    distance from the origin) of its centre's direction; the centre's region first. One name
+    = the patch lies inside one region; more = it straddles a border (:data:`STRADDLE_RULE`)."""
+    pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    diam = np.broadcast_to(np.asarray(diameters, dtype=np.float64), (len(pts),))
+    rel = pts - anatomy.origin
+    dist = np.maximum(np.linalg.norm(rel, axis=1), 1e-12)
+    d = rel / dist[:, None]
+    # two unit vectors orthogonal to each centre's direction
+    ref = np.where(np.abs(d @ anatomy.neck)[:, None] < 0.9, anatomy.neck, anatomy.anterior)
+    e1 = _unit(np.cross(d, ref))
+    e2 = np.cross(d, e1)
+    ang = np.clip(np.nan_to_num(diam / 2.0 / dist), 0.0, math.pi / 2)
+    frac = np.arange(1, rings + 1) / rings
+    phi = np.linspace(0.0, 2 * math.pi, per_ring, endpoint=False)
+    a = ang[:, None, None] * frac[None, :, None]  # (n, rings, 1)
+    ring = np.cos(phi)[None, None, :, None] * e1[:, None, None] \
+        + np.sin(phi)[None, None, :, None] * e2[:, None, None]
+    dirs = np.cos(a)[..., None] * d[:, None, None] + np.sin(a)[..., None] * ring
+    out = []
+    for i in range(len(pts)):
+        names = anatomy.regions(anatomy.origin + np.vstack([d[i][None], dirs[i].reshape(-1, 3)]))
+        seen = [str(names[0])]
+        seen += sorted({str(x) for x in names[1:]} - {seen[0]}, key=REGIONS.index)
+        out.append(seen)
+    return out
+
+
+#: How a patch on a border is named (changes.csv ``region`` / ``straddles``, evaluate).
+STRADDLE_RULE = ("a patch is named by the region of its centroid on the wall; when its extent "
+                 "(its diameter about the centroid) crosses a region border it straddles, and "
+                 "the other regions it covers are listed in 'straddles'; evaluate counts a "
+                 "lesion's region right when the region named is one the lesion covers, or "
+                 "the lesion's region one the patch is said to straddle")
+
+
 def locate(anatomy: Anatomy, points: Any, rays: Any = None,
-           neck_point: Any = None) -> list[dict[str, Any]]:
+           neck_point: Any = None, diameters: Any = None) -> list[dict[str, Any]]:
     """``region``, ``clock`` (hours, 0.1) and ``distance_from_neck_mm`` of each point (the
-    distance is left empty without a mesh)."""
+    distance is left empty without a mesh); with ``diameters`` (of the patches centred at the
+    points) also ``straddles``: the other regions each patch covers, "; "-joined (empty when
+    it lies inside its region; see :func:`covered_regions`)."""
     pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
     if len(pts) == 0:
         return []
@@ -186,9 +228,13 @@ def locate(anatomy: Anatomy, points: Any, rays: Any = None,
     names = region_of(hours, polar)
     dist = (neck_distance(anatomy, rays, pts, neck_point) if rays is not None
             else np.full(len(pts), np.nan))
-    return [{"region": str(names[i]), "clock": round(float(hours[i]), 1),
-             "distance_from_neck_mm": (round(float(dist[i]), 2) if np.isfinite(dist[i]) else "")}
-            for i in range(len(pts))]
+    out = [{"region": str(names[i]), "clock": round(float(hours[i]), 1),
+            "distance_from_neck_mm": (round(float(dist[i]), 2) if np.isfinite(dist[i]) else "")}
+           for i in range(len(pts))]
+    if diameters is not None:
+        for row, cov in zip(out, covered_regions(anatomy, pts, diameters), strict=True):
+            row["straddles"] = "; ".join(cov[1:])
+    return out
 
 
 # --------------------------------------------------------------------------- estimation
@@ -241,20 +287,23 @@ def _rotate(v: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
 
 def _entry_neck(cen: np.ndarray, out: np.ndarray, origin: np.ndarray,
                 rays: Any) -> tuple[np.ndarray, str]:
-    """Neck direction from the entry cameras (video order): where their path, followed back
-    (towards the earlier frames), meets the wall; one camera or a path that stays outside
-    the wall: the direction of the outermost camera."""
+    """Neck direction from the entry cameras (video order). A camera outside the wall (its
+    distance from the origin beyond the wall's in its direction) is still in the urethra,
+    which meets the bladder at the neck: the direction of the outermost one. Otherwise (the
+    recording starts inside): where the cameras' path, followed back (towards the earlier
+    frames), meets the wall; a single camera: its direction."""
     far = int(np.argmax(out))
+    if out[far] > 1.0:
+        return _unit(cen[far] - origin), "the outermost camera, still in the urethra"
     if len(cen) >= 2:
         c = cen - cen.mean(axis=0)
         d = np.linalg.svd(c, full_matrices=False)[2][0]
         if d @ (cen[0] - cen[-1]) < 0:
             d = -d  # towards the earlier frames (out through the neck)
         inner = int(np.argmin(out))
-        if out[inner] < 1.0:
-            t, _ = rays.cast(cen[inner], d[None])
-            if np.isfinite(t[0]):
-                return _unit(cen[inner] + t[0] * d - origin), "its path followed back to the wall"
+        t, _ = rays.cast(cen[inner], d[None])
+        if np.isfinite(t[0]):
+            return _unit(cen[inner] + t[0] * d - origin), "its path followed back to the wall"
     return _unit(cen[far] - origin), "the outermost camera"
 
 

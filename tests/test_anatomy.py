@@ -18,12 +18,22 @@ import pandas as pd
 import pytest
 from test_compare import B_FRAME, CUBE, N_FRAMES, build_session
 
-from cystomap.anatomy import Anatomy, AnatomyHint, atlas_axes, estimate, locate, region_of
+from cystomap.anatomy import (
+    Anatomy,
+    AnatomyHint,
+    atlas_axes,
+    covered_regions,
+    estimate,
+    locate,
+    region_of,
+)
 from cystomap.atlas.projection import Projection, SurfaceRays
+from cystomap.atlas.regions import region_grid
 from cystomap.compare import CompareConfig, Landmark, SessionPaths, compare_sessions
 from cystomap.compare.registration import Similarity
 from cystomap.errors import InputError
 from cystomap.evaluate import evaluate_changes, evaluate_session
+from cystomap.evaluate.anatomy import border_distance
 from cystomap.evaluate.config import EvalConfig
 from cystomap.evaluate.session import _align, _load_models
 from cystomap.evaluate.truth import load_truth
@@ -82,6 +92,48 @@ def test_distance_from_the_neck_is_the_arc_on_a_sphere() -> None:
     assert [r["clock"] for r in rows] == [12.0] * 4
 
 
+def _at(polar_deg: float, hours: float, radius: float = 50.0) -> np.ndarray:
+    p, t = math.radians(polar_deg), math.radians(30 * hours)
+    side = math.cos(t) * FRAME.anterior + math.sin(t) * FRAME.left
+    return FRAME.origin + radius * (math.cos(p) * FRAME.neck + math.sin(p) * side)
+
+
+def test_a_patch_on_a_border_straddles_it() -> None:
+    """Centroid's region first; the other regions its disc covers after it (STRADDLE_RULE).
+    On a 50 mm sphere 1 h of clock at the equator is 26 mm of wall, 10 deg of polar 8.7 mm."""
+    pts = np.array([_at(90, 3.0), _at(90, 1.6), _at(90, 1.6), _at(50, 6.0), _at(140, 0.2)])
+    got = covered_regions(FRAME, pts, [20.0, 5.0, 10.0, 10.0, 4.0])
+    assert got == [["left lateral wall"], ["left lateral wall"],
+                   ["left lateral wall", "anterior wall"], ["posterior wall", "trigone/neck"],
+                   ["dome"]]
+    rows = locate(FRAME, pts[:3], diameters=[20.0, 5.0, 10.0])
+    assert [r["straddles"] for r in rows] == ["", "", "anterior wall"]
+    assert "straddles" not in locate(FRAME, pts[:1])[0]  # the phantom's lesions.csv columns
+    # how far from the nearest border, on the wall: 0.1 h at the equator, 5 deg of polar
+    assert border_distance(FRAME, pts[[1, 3]]) == pytest.approx(
+        [50 * math.radians(3.0), 50 * math.radians(5.0)], rel=1e-3)
+
+
+def test_region_grid_lies_on_the_borders() -> None:
+    v, f = sphere()
+    rays = SurfaceRays(v, f, origin=FRAME.origin)
+    grid = region_grid(FRAME, rays, step_deg=3.0)
+    assert len(grid["lines"]) == 6  # two caps' circles, four meridians
+    pts = np.vstack([np.array(line) for line in grid["lines"]])
+    assert np.linalg.norm(pts - FRAME.origin, axis=1) == pytest.approx(50.0, rel=0.01)
+    hours, polar = FRAME.clock_polar(pts)
+    on_cap = np.minimum(np.abs(polar - 45.0), np.abs(polar - 135.0)) < 0.5
+    starts = np.array([1.5, 4.5, 7.5, 10.5])
+    on_meridian = np.abs((hours[:, None] - starts + 6) % 12 - 6).min(axis=1) < 0.02
+    assert (on_cap | on_meridian).all()
+    assert on_cap.sum() > 200 and on_meridian.sum() > 100
+    names = [lab["text"] for lab in grid["labels"]]
+    assert sorted(names) == sorted(["trigone/neck", "posterior wall", "left lateral wall",
+                                    "right lateral wall", "anterior wall", "dome"])
+    at = np.array([lab["xyz"] for lab in grid["labels"]])
+    assert list(FRAME.regions(at)) == names  # each name inside its region
+
+
 def _entry(roll_deg: float = 0.0, skip: int = 0) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Cameras entering a sphere through the neck along its axis, image up = anterior rotated
     by ``roll_deg`` clockwise (seen from the neck), then turning to look around."""
@@ -107,7 +159,11 @@ def test_estimate_from_the_entry_and_the_overrides() -> None:
     est = estimate(*_entry(), FRAME.origin, rays)
     assert est.neck @ FRAME.neck > math.cos(math.radians(0.5))
     assert est.anterior @ FRAME.anterior > math.cos(math.radians(0.5))
-    assert "entry" in est.source
+    assert "entry" in est.source and "still in the urethra" in est.source
+    # a recording that starts inside the wall: the entry path followed back to it
+    inside = estimate(*_entry(skip=3), FRAME.origin, rays)
+    assert inside.neck @ FRAME.neck > math.cos(math.radians(0.5))
+    assert "path followed back" in inside.source
     # the scope entered rolled by 90 deg (image up = patient's left): given, it is undone
     rolled = estimate(*_entry(90.0), FRAME.origin, rays)
     assert rolled.anterior @ FRAME.left > 0.99
@@ -174,7 +230,7 @@ def test_changes_and_landmarks_have_their_region(pair: dict[str, Path], tmp_path
     compare_sessions(SessionPaths.from_root(a), SessionPaths.from_root(b), out,
                      CompareConfig(), landmarks=[Landmark("lesion1", point=site)])
     table = pd.read_csv(out / "changes.csv")
-    assert {"region", "clock", "distance_from_neck_mm"} <= set(table.columns)
+    assert {"region", "clock", "distance_from_neck_mm", "straddles"} <= set(table.columns)
     score = evaluate_changes(b / "truth", b / "sfm", out / "changes.csv")["lesions"]
     assert score["n_matched"] >= 5
     assert score["region_accuracy"] == 1.0, score["lesions"]

@@ -107,8 +107,9 @@ def write_comparison(root: Path, a: SessionInputs, b: SessionInputs, registered:
                          "azimuth_deg": np.degrees(az), "elevation_deg": 7.0, "area_mm2": (80.0 - i) * growth ** 2,
                          "diameter_mm": round((10.1 - i) * growth, 2), "mean_difference": 30.0,
                          "score": 3.0 - i / 10, "region": ("left lateral wall", "posterior wall")[i % 2],
-                         "clock": 2.5 + 3 * i, "distance_from_neck_mm": 40.0 + i})
-    columns = CHANGE_COLUMNS + ANATOMY_COLUMNS
+                         "clock": 2.5 + 3 * i, "distance_from_neck_mm": 40.0 + i,
+                         "straddles": ("", "left lateral wall")[i % 2]})
+    columns = CHANGE_COLUMNS + ANATOMY_COLUMNS + ("straddles",)
     with open(d / "changes.csv", "w") as fh:
         fh.write(",".join(columns) + "\n")
         for r in rows:
@@ -351,6 +352,7 @@ def test_summary_lists_coverage_regions_and_changes(three_sessions):
     assert changes.count("<tr>") == 3  # header + the 2 changes of s1 → s2 (s2 → s3 not registered)
     assert ("<td>s1 → s2</td><td><a href='#change-s1-s2-1'>1</a></td><td>left lateral wall</td><td>2:30</td>"
             "<td>40 mm</td><td>10.1 mm</td><td>80.0 mm²</td>") in changes
+    assert "<td>posterior wall (also left lateral wall)</td><td>5:30</td>" in changes  # on a border
     assert "s2 → s3: not co-registered (only 4 inlier matches (need 25)); no change measured." in summary
 
 
@@ -416,6 +418,22 @@ def test_3d_views_know_their_centre_for_the_inside_view(three_sessions):
     assert g["centre"] == [0.0, 0.0, 0.0] and g["neck"] == [0.0, 0.0, -1.0] and g["anterior"] == [1.0, 0.0, 0.0]
     for key in data["views"]:
         assert f"<button type='button' class='cm-inside' data-for='{key}' hidden>View from inside</button>" in text
+
+
+def test_3d_views_draw_the_region_grid(three_sessions):
+    """Each session's geometry carries the regions' borders (on the viewed mesh, about the
+    anatomical origin) and names, which the viewer draws as a layer with its own button."""
+    _, text = three_sessions
+    data = view_data(text)
+    for g in data["geometries"].values():
+        grid = g["regions"]
+        assert len(grid["lines"]) == 6
+        pts = np.vstack([np.array(line) for line in grid["lines"]])
+        r = np.linalg.norm(pts, axis=1)  # origin (0, 0, 0): on the sphere of the mesh
+        assert r.max() < RADIUS * 1.001 and r.min() > RADIUS * 0.97
+        assert {lab["text"] for lab in grid["labels"]} == set(REGIONS)
+    for key in data["views"]:
+        assert f"<button type='button' class='cm-regions' data-for='{key}' hidden>Hide regions</button>" in text
 
 
 def test_pdf_needs_chromium_and_says_so(tmp_path):

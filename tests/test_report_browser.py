@@ -220,10 +220,8 @@ def test_synthetic_report_prints_a_summary_page_and_a_page_per_card(tmp_path):
     assert pdf_pages((tmp_path / "report.pdf").read_bytes()) == 1 + cards
 
 
-def test_a_3d_view_flies_from_the_inside(browser, tmp_path):
-    """The view's "View from inside" puts the camera at the model's centre: the wall fills the
-    view (the outside view shows the sphere on white); the button goes back."""
-    import cv2
+def synthetic_page(browser, tmp_path: Path):
+    """A two-session synthetic report opened in a page: (context, page, errors seen)."""
     from test_report import SMALL, make_study
 
     from cystomap.report import build_report
@@ -235,13 +233,28 @@ def test_a_3d_view_flies_from_the_inside(browser, tmp_path):
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(report.resolve().as_uri(), wait_until="load")
+    return context, page, errors
+
+
+def drawn_view(page, key: str):
+    """The 3-D view ``key`` scrolled into view and drawn."""
+    view = page.locator(f".cm-3d[data-view='{key}']")
+    view.scroll_into_view_if_needed()
+    page.wait_for_function("e => e.getAttribute('data-state') === 'drawn'", arg=view.element_handle(),
+                           timeout=90_000)
+    return view
+
+
+def test_a_3d_view_flies_from_the_inside(browser, tmp_path):
+    """The view's "View from inside" puts the camera at the model's centre: the wall fills the
+    view (the outside view shows the sphere on white); the button goes back."""
+    import cv2
+
+    context, page, errors = synthetic_page(browser, tmp_path)
     shots = {}
     try:
-        page.goto(report.resolve().as_uri(), wait_until="load")
-        view = page.locator(".cm-3d[data-view='s0']")
-        view.scroll_into_view_if_needed()
-        page.wait_for_function("e => e.getAttribute('data-state') === 'drawn'", arg=view.element_handle(),
-                               timeout=90_000)
+        view = drawn_view(page, "s0")
         button = page.locator(".cm-inside[data-for='s0']")
         for camera, label in (("outside", "View from inside"), ("inside", "View from outside"),
                               ("outside", "View from inside")):
@@ -258,3 +271,59 @@ def test_a_3d_view_flies_from_the_inside(browser, tmp_path):
     assert not errors, errors
     share = {k: drawn_share(v) for k, v in shots.items()}
     assert share[1] > 0.97 and share[0] < 0.45 and share[2] < 0.45, share  # measured 0.99, 0.23, 0.23
+
+
+def yellow_pixels(rgb: np.ndarray) -> int:
+    r, g, b = (rgb[..., k].astype(int) for k in range(3))
+    return int(((r > 200) & (g > 160) & (b < 90)).sum())
+
+
+LOOK_AT_1_30 = """e => Plotly.relayout(e, {'scene.camera.center': {x: 0.007, y: 0.007, z: 0},
+                                         'scene.camera.up': {x: 0, y: 0, z: 1}})
+  .then(() => e.data.filter(t => t.meta === 'regions' && t.mode === 'lines')
+    .map(t => t.x.map((x, i) => x === null ? null : Math.hypot(x, t.y[i], t.z[i])).filter(r => r !== null)))"""
+
+
+def test_a_3d_view_shows_the_region_grid_and_hides_it(browser, tmp_path):
+    """The regions' borders (yellow lines) and names are drawn on the model, from outside and
+    from the inside (the lines move to the camera's side of the wall); "Hide regions" turns
+    them off and "Show regions" back on."""
+    import cv2
+
+    context, page, errors = synthetic_page(browser, tmp_path)
+    yellow = {}
+    try:
+        view = drawn_view(page, "s0")
+        regions, inside = page.locator(".cm-regions[data-for='s0']"), page.locator(".cm-inside[data-for='s0']")
+
+        def shot(name: str, regions_state: str, label: str) -> None:
+            page.wait_for_function(f"e => e.getAttribute('data-regions') === '{regions_state}'",
+                                   arg=view.element_handle(), timeout=30_000)
+            page.wait_for_timeout(300)
+            assert regions.is_visible() and regions.text_content() == label
+            png = view.screenshot()
+            yellow[name] = yellow_pixels(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1])
+
+        shot("outside", "shown", "Hide regions")
+        regions.click()
+        shot("outside hidden", "hidden", "Show regions")
+        regions.click()
+        shot("outside again", "shown", "Hide regions")
+        inside.click()
+        page.wait_for_function("e => e.getAttribute('data-camera') === 'inside'", arg=view.element_handle(),
+                               timeout=30_000)
+        # from the centre the dome fills the view; look at the border of the anterior and left
+        # walls (1:30; the test's frame: neck -z, anterior +x, left +y), and check that the
+        # lines lie inside the wall
+        radii = page.evaluate(LOOK_AT_1_30, view.element_handle())
+        assert len(radii) == 1 and max(radii[0]) < 40.0 * 0.99  # the test mesh: a 40 mm sphere
+        shot("inside", "shown", "Hide regions")
+        regions.click()
+        shot("inside hidden", "hidden", "Show regions")
+    finally:
+        context.close()
+    assert not errors, errors
+    assert yellow["outside"] > 300 and yellow["inside"] > 300, yellow
+    assert yellow["outside hidden"] < 0.1 * yellow["outside"], yellow
+    assert yellow["inside hidden"] < 0.1 * yellow["inside"], yellow
+    assert yellow["outside again"] == pytest.approx(yellow["outside"], rel=0.05), yellow

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from cystomap.anatomy import DOME_CAP_DEG, NECK_CAP_DEG, WALL_SECTORS, Anatomy
-from cystomap.atlas.projection import Projection
+from cystomap.atlas.projection import Projection, SurfaceRays
 
 ORIENTATION_NOTE = (
     "anatomical (cystomap.anatomy): neck at the bottom row, dome at the top row; the wall "
@@ -85,3 +85,60 @@ def region_overlay(rgba: np.ndarray, proj: Projection, anatomy: Anatomy,
     for i, line in enumerate(LEGEND):
         put(line, w / 2, (22 + 30 * i) * scale, 0.8, GRID)
     return img
+
+
+def region_grid(anatomy: Anatomy, rays: SurfaceRays,
+                step_deg: float = 2.0) -> dict[str, list]:
+    """The region borders and names on the wall (model frame), for the 3-D views.
+
+    ``lines``: polylines (lists of [x, y, z]) where rays from the anatomical origin along the
+    borders meet the mesh ``rays``: the neck and dome caps' circles and, between them, the
+    wall sectors' meridians (a ray that misses, e.g. through an open aperture, breaks its
+    line); ``labels``: ``{"text", "xyz"}`` per region, on the wall at its middle (the
+    trigone/neck's half-way to the neck, at 6 o'clock: the neck itself is the aperture).
+    """
+    n, a, left = anatomy.neck, anatomy.anterior, anatomy.left
+
+    def dirs(polar_deg: np.ndarray, hours: np.ndarray) -> np.ndarray:
+        p, t = np.radians(polar_deg), np.radians(30.0 * hours)
+        side = np.cos(t)[:, None] * a + np.sin(t)[:, None] * left
+        return np.cos(p)[:, None] * n + np.sin(p)[:, None] * side
+
+    def on_wall(d: np.ndarray) -> np.ndarray:
+        t, _ = rays.cast(anatomy.origin, d)
+        return anatomy.origin + np.where(np.isfinite(t), t, np.nan)[:, None] * d  # NaN: a miss
+
+    def pieces(points: np.ndarray) -> list[list[list[float]]]:
+        ok = np.isfinite(points).all(axis=1)
+        out, cur = [], []
+        for p, good in zip(points, ok, strict=True):
+            if good:
+                cur.append([round(float(x), 3) for x in p])
+            elif cur:
+                out.append(cur)
+                cur = []
+        if cur:
+            out.append(cur)
+        return [c for c in out if len(c) >= 2]
+
+    k = max(8, math.ceil(360.0 / step_deg))
+    ring = np.arange(k + 1) * (12.0 / k)  # closed: the last point is the first
+    lines = []
+    for polar in (NECK_CAP_DEG, 180.0 - DOME_CAP_DEG):
+        lines += pieces(on_wall(dirs(np.full(len(ring), polar), ring)))
+    m = max(2, math.ceil((180.0 - DOME_CAP_DEG - NECK_CAP_DEG) / step_deg))
+    span = np.linspace(NECK_CAP_DEG, 180.0 - DOME_CAP_DEG, m + 1)
+    for _, start, _ in WALL_SECTORS:
+        lines += pieces(on_wall(dirs(span, np.full(len(span), start))))
+    names, polar, hours = [], [], []
+    for name, start, end in WALL_SECTORS:
+        names.append(name)
+        polar.append(90.0)
+        hours.append((start + (end - start) % 12 / 2) % 12)
+    names += ["trigone/neck", "dome"]
+    polar += [NECK_CAP_DEG / 2, 180.0]
+    hours += [6.0, 6.0]
+    at = on_wall(dirs(np.array(polar), np.array(hours)))
+    labels = [{"text": name, "xyz": [round(float(x), 3) for x in p]}
+              for name, p in zip(names, at, strict=True) if np.isfinite(p).all()]
+    return {"lines": lines, "labels": labels}

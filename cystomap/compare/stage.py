@@ -24,7 +24,9 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   (CIE76 ΔE*ab between A's and B's mean colours over the region); then where it is in B's
   anatomical frame (:mod:`cystomap.anatomy`, from B's atlas.json): ``region`` (standard
   bladder region), ``clock`` (o'clock seen from the neck, 12 = anterior) and
-  ``distance_from_neck_mm`` (on the wall); sorted by score;
+  ``distance_from_neck_mm`` (on the wall), ``straddles`` (the other regions its extent covers
+  when it lies on a border, "; "-joined; :data:`cystomap.anatomy.STRADDLE_RULE`); sorted by
+  score;
 * ``difference.png``: on the comparison grid (B's atlas projection, pixels of about
   ``grid_mm``), RGB 128 + (B − A) per channel after illumination matching: 50 % grey = no
   change, black = not compared (not seen by both, or far from every inlier match);
@@ -201,8 +203,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
 
     with atomic_dir(out_dir) as tmp:
         write_json(tmp / "registration.json", reg_json)
-        _write_csv(tmp / "changes.csv", CHANGE_COLUMNS + ANATOMY_COLUMNS,
-                   with_anatomy([g.row() for g in regions], atlas_b))
+        _write_csv(tmp / "changes.csv", CHANGE_COLUMNS + ANATOMY_COLUMNS + ("straddles",),
+                   with_anatomy([g.row() for g in regions], atlas_b, sized=True))
         found.write(tmp)
         imwrite_rgb(tmp / "side_by_side.png", side_by_side(atlas_a.rgba, atlas_b.rgba))
         if diff is not None:
@@ -382,13 +384,17 @@ def _supported(grid: Any, pa: np.ndarray, reg: Registration,
     return ok, point_dist
 
 
-def with_anatomy(rows: list[dict[str, Any]], atlas: SessionAtlas) -> list[dict[str, Any]]:
+def with_anatomy(rows: list[dict[str, Any]], atlas: SessionAtlas,
+                 sized: bool = False) -> list[dict[str, Any]]:
     """``rows`` (with x, y, z in the session's model frame) with region, clock and
-    distance_from_neck_mm from the session's atlas.json anatomy (empty without one)."""
+    distance_from_neck_mm from the session's atlas.json anatomy (empty without one); ``sized``
+    (rows with diameter_mm): also ``straddles``, the other regions the change covers
+    (:data:`cystomap.anatomy.STRADDLE_RULE`)."""
     import json
 
     meta = json.loads((Path(atlas.atlas_dir) / "atlas.json").read_text())
-    out = [{**r, **{k: "" for k in ANATOMY_COLUMNS}} for r in rows]
+    columns = ANATOMY_COLUMNS + (("straddles",) if sized else ())
+    out = [{**r, **{k: "" for k in columns}} for r in rows]
     if "anatomy" not in meta:
         return out
     anatomy = Anatomy.from_json(meta["anatomy"])
@@ -396,6 +402,7 @@ def with_anatomy(rows: list[dict[str, Any]], atlas: SessionAtlas) -> list[dict[s
                                                 for k in ("x", "y", "z"))]
     if idx:
         pts = np.array([[rows[i]["x"], rows[i]["y"], rows[i]["z"]] for i in idx], float)
-        for i, loc in zip(idx, locate(anatomy, pts, atlas.rays), strict=True):
+        diam = ([float(rows[i].get("diameter_mm") or 0.0) for i in idx] if sized else None)
+        for i, loc in zip(idx, locate(anatomy, pts, atlas.rays, diameters=diam), strict=True):
             out[i].update(loc)
     return out

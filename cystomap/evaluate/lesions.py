@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from cystomap.anatomy import Anatomy, covered_regions
+from cystomap.evaluate.anatomy import straddle_match
 from cystomap.evaluate.config import EvalConfig
 from cystomap.evaluate.trajectory import Sim3
 from cystomap.evaluate.truth import Truth, read_csv
@@ -45,6 +47,12 @@ def score_changes(
     Detections (centroids and diameters in session B's model frame) are taken into the truth
     frame by ``sim3_b`` (model → truth, so diameters scale by its scale) and matched one-to-one
     to the true lesions within max(lesion_tolerance_mm, factor × true diameter).
+
+    Region rule (:data:`cystomap.anatomy.STRADDLE_RULE`,
+    :func:`cystomap.evaluate.anatomy.straddle_match`): a detection's region is right when it
+    is one of the regions its lesion covers in the true frame, or the lesion's region is one
+    changes.csv says the detection straddles (``region_accuracy``); ``region_centre_accuracy``
+    the strict share (the region of the lesion's centre).
     """
     det = read_csv(changes_csv, CHANGE_COLUMNS)
     true = truth_b.lesions
@@ -57,6 +65,7 @@ def score_changes(
     by_true = {i: (j, d) for i, j, d in matches}
     matched_det = {j for _, j, _ in matches}
 
+    covered = _covered(truth_b, true_xyz, true_diam)
     lesions = []
     for i, row in enumerate(true.itertuples(index=False)):
         entry: dict[str, Any] = {"id": _plain(row.id), "diameter_mm": float(true_diam[i]),
@@ -64,8 +73,14 @@ def score_changes(
         if i in by_true:
             j, d = by_true[i]
             if "region" in det.columns and "region" in true.columns:
-                entry.update(region_true=str(row.region), region=str(det["region"].iloc[j]),
-                             region_correct=str(det["region"].iloc[j]) == str(row.region))
+                name = str(det["region"].iloc[j])
+                ok = covered[i] if covered else [str(row.region)]
+                other = det["straddles"].iloc[j] if "straddles" in det.columns else ""
+                named = [name] + [x.strip() for x in str(other).split(";")
+                                  if isinstance(other, str) and x.strip()]
+                entry.update(region_true=str(row.region), region=name, regions_covered=ok,
+                             region_correct=straddle_match(name, named, str(row.region), ok),
+                             region_centre_correct=name == str(row.region))
             entry.update(
                 detection_row=j,
                 localisation_error_mm=d,
@@ -102,6 +117,9 @@ def score_changes(
         "size_abs_error_percent_mean": float(np.abs(size).mean()) if len(size) else None,
         "average_precision": _average_precision(det, matched_det, len(true)),
         "region_accuracy": sum(regions) / len(regions) if regions else None,
+        "region_centre_accuracy": (sum(e["region_centre_correct"] for e in lesions
+                                       if "region_centre_correct" in e) / len(regions)
+                                   if regions else None),
         "recall_by_diameter": by_diam,
         "lesions": lesions,
         "false_positive_rows": fp_rows,
@@ -125,3 +143,11 @@ def _average_precision(det: Any, matched: set[int], n_true: int) -> float | None
 
 def _plain(value: Any) -> Any:
     return value.item() if isinstance(value, np.generic) else value
+
+
+def _covered(truth: Truth, xyz: np.ndarray, diam: np.ndarray) -> list[list[str]] | None:
+    """The regions each true lesion covers in the true anatomical frame (None without it)."""
+    meta = truth.meta.get("anatomy") if isinstance(truth.meta, dict) else None
+    if not meta or not len(xyz):
+        return None
+    return covered_regions(Anatomy.from_json(meta), xyz, diam)

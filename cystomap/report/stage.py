@@ -28,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from cystomap.anatomy import Anatomy
 from cystomap.atlas.model import read_glb
-from cystomap.atlas.projection import Projection
+from cystomap.atlas.projection import Projection, SurfaceRays
+from cystomap.atlas.regions import region_grid
 from cystomap.errors import InputError
 from cystomap.outputs import atomic_file
 from cystomap.report import followup, html, media, model3d
@@ -145,7 +147,7 @@ def _session_page(i: int, s: SessionInputs, summary: SessionSummary, base: Path,
         gkey = f"g{i}"
         geometries[gkey] = geometry
         views["geometries"][gkey] = {**geometry.to_json(), "units": summary.units, "session": s.name,
-                                     **_inside_camera(meta, proj)}
+                                     **_inside_camera(meta, proj), **_region_grid(meta, geometry)}
         textured = media.over(atlas_rgba, UNSEEN_GREY)
         view_key = f"s{i}"
         views["views"][view_key] = model3d.View(gkey, model3d.vertex_colours(geometry, proj, textured)).to_json()
@@ -165,6 +167,22 @@ def _inside_camera(meta: dict[str, Any], proj: Projection) -> dict[str, list[flo
     out = {k: v for k, v in found.items() if v is not None and k != "origin"}
     out["centre"] = found["origin"] or [float(v) for v in proj.barycentre]
     return out
+
+
+def _region_grid(meta: dict[str, Any], geometry: model3d.Geometry) -> dict[str, Any]:
+    """``{"regions": ...}``: the standard regions' borders and names on the viewed mesh
+    (:func:`cystomap.atlas.regions.region_grid`) when atlas.json has the anatomical frame."""
+    anatomy = meta.get("anatomy")
+    if not isinstance(anatomy, dict) or not len(geometry.faces):
+        return {}
+    try:
+        frame = Anatomy.from_json(anatomy)
+    except (KeyError, TypeError, ValueError, InputError) as exc:
+        log.warning("report: atlas.json's anatomy is not usable (%s); no region grid", exc)
+        return {}
+    rays = SurfaceRays(geometry.vertices.astype(np.float64), geometry.faces.astype(np.int64),
+                       origin=frame.origin)
+    return {"regions": region_grid(frame, rays)}
 
 
 def _vector(value: Any) -> list[float] | None:

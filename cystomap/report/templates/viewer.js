@@ -16,7 +16,7 @@
     var f = g.index_bits === 16 ? new Uint16Array(fb) : new Uint32Array(fb);
     var out = {x: new Float32Array(g.n), y: new Float32Array(g.n), z: new Float32Array(g.n),
                i: new Uint32Array(g.m), j: new Uint32Array(g.m), k: new Uint32Array(g.m), units: g.units,
-               centre: g.centre, neck: g.neck, anterior: g.anterior};
+               centre: g.centre, neck: g.neck, anterior: g.anterior, regions: g.regions};
     var o = g.origin, s = g.step;
     for (var a = 0; a < g.n; a++) {
       out.x[a] = o[0] + s[0] * v[3 * a]; out.y[a] = o[1] + s[1] * v[3 * a + 1]; out.z[a] = o[2] + s[2] * v[3 * a + 2];
@@ -53,19 +53,59 @@
     });
     return scene;
   }
+  // The standard regions' borders and names (cystomap.atlas.regions.region_grid), moved off
+  // the wall about the centre towards the camera's side (out from outside, in from inside)
+  // so the mesh does not hide them.
+  var LIFT = {outside: 1.012, inside: 0.985};
+  function regionTraces(g, side) {
+    var r = g.regions, c = g.centre, f = LIFT[side];
+    var lx = [], ly = [], lz = [];
+    function at(p, d) { return c[d] + (p[d] - c[d]) * f; }
+    r.lines.forEach(function (line) {
+      line.forEach(function (p) { lx.push(at(p, 0)); ly.push(at(p, 1)); lz.push(at(p, 2)); });
+      lx.push(null); ly.push(null); lz.push(null);
+    });
+    return [{type: "scatter3d", mode: "lines", x: lx, y: ly, z: lz, hoverinfo: "skip", name: "region borders",
+             line: {color: "#ffd21f", width: 4}, meta: "regions"},
+            {type: "scatter3d", mode: "text", name: "region names", meta: "regions",
+             x: r.labels.map(function (l) { return at(l.xyz, 0); }), y: r.labels.map(function (l) { return at(l.xyz, 1); }),
+             z: r.labels.map(function (l) { return at(l.xyz, 2); }), text: r.labels.map(function (l) { return l.text.toUpperCase(); }),
+             hoverinfo: "skip", textfont: {color: "#1a1a1a", size: 12}}];
+  }
+  function withRegions(el, g, side) {
+    var shown = el.getAttribute("data-regions") !== "hidden";
+    var data = el.data.filter(function (t) { return t.meta !== "regions"; });
+    if (g.regions) {
+      regionTraces(g, side).forEach(function (t) { t.visible = shown; data.push(t); });
+    }
+    return data;
+  }
+  function toggleRegions(button) {
+    var el = document.querySelector(".cm-3d[data-view='" + button.getAttribute("data-for") + "']");
+    if (!el || el.getAttribute("data-state") !== "drawn") return;
+    var show = el.getAttribute("data-regions") === "hidden";
+    var idx = [];
+    el.data.forEach(function (t, i) { if (t.meta === "regions") idx.push(i); });
+    Plotly.restyle(el, {visible: show}, idx).then(function () {
+      el.setAttribute("data-regions", show ? "shown" : "hidden");
+      button.textContent = show ? "Hide regions" : "Show regions";
+    });
+  }
   function toggle(button) {
     var el = document.querySelector(".cm-3d[data-view='" + button.getAttribute("data-for") + "']");
     if (!el || el.getAttribute("data-state") !== "drawn") return;
     var g = geometry(data.views[el.getAttribute("data-view")].geometry);
     var goIn = el.getAttribute("data-camera") !== "inside";
     el.setAttribute("data-camera", "moving");
-    Plotly.react(el, el.data, Object.assign({}, el.layout, {scene: goIn ? inside(g) : outside(g)})).then(function () {
+    Plotly.react(el, withRegions(el, g, goIn ? "inside" : "outside"),
+                 Object.assign({}, el.layout, {scene: goIn ? inside(g) : outside(g)})).then(function () {
       el.setAttribute("data-camera", goIn ? "inside" : "outside");
       button.textContent = goIn ? "View from outside" : "View from inside";
     });
   }
   document.addEventListener("click", function (e) {
     if (e.target.classList && e.target.classList.contains("cm-inside")) toggle(e.target);
+    if (e.target.classList && e.target.classList.contains("cm-regions")) toggleRegions(e.target);
   });
   function draw(el) {
     var view = data.views[el.getAttribute("data-view")];
@@ -83,6 +123,10 @@
         marker: {size: 6, color: "#ff28c8", line: {color: "#ffffff", width: 2}},
         textfont: {color: "#111111", size: 15}});
     }
+    if (g.regions) {
+      el.setAttribute("data-regions", "shown");
+      regionTraces(g, "outside").forEach(function (t) { traces.push(t); });
+    }
     var layout = {margin: {l: 0, r: 0, t: 0, b: 0}, showlegend: false, paper_bgcolor: "#ffffff",
                   scene: outside(g)};
     el.setAttribute("data-state", "drawing");
@@ -94,6 +138,8 @@
       el.setAttribute("data-state", "drawn");
       var button = document.querySelector(".cm-inside[data-for='" + el.getAttribute("data-view") + "']");
       if (button) { button.hidden = !g.centre; button.textContent = "View from inside"; }
+      var regions = document.querySelector(".cm-regions[data-for='" + el.getAttribute("data-view") + "']");
+      if (regions) { regions.hidden = !g.regions; regions.textContent = "Hide regions"; }
       live.push(el);
       while (live.length > MAX_LIVE) {
         var old = null;
@@ -104,6 +150,8 @@
         old.setAttribute("data-state", "idle");
         var stale = document.querySelector(".cm-inside[data-for='" + old.getAttribute("data-view") + "']");
         if (stale) stale.hidden = true;
+        var staleRegions = document.querySelector(".cm-regions[data-for='" + old.getAttribute("data-view") + "']");
+        if (staleRegions) staleRegions.hidden = true;
         old.innerHTML = "<p class='placeholder'>3-D view: loads when scrolled into view.</p>";
       }
     });
