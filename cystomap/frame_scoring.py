@@ -36,8 +36,6 @@ log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 5.0
 # at most this many frames back for sharpness comparisons (memory: one cell map per frame)
 _MAX_PAIR_REACH = 256
-# a video of at least this many times probe_samples frames is probed by seeking
-_SEEK_PROBE_REL = 8
 # frames decoded ahead of the scoring (in a worker thread)
 _DECODE_AHEAD = 16
 # weak pull of the content-matched log-sharpness towards the raw one; Huber scale of the fit
@@ -85,26 +83,11 @@ def _probe(video: Path, cfg: FramesConfig, camera: Camera | None) -> _Probe:
         ah = max(8, round(h * aw / w))
         probe = _Probe(w, h, info.fps, aw, ah, np.ones((ah, aw), bool),
                        np.full((ah, aw), 255, np.uint8), np.zeros((0, 2)), 1.0, 0.0, 0.0)
-        samples = [probe.to_analysis(first)]
-        seeked = False
-        if info.frame_count >= _SEEK_PROBE_REL * cfg.probe_samples:
-            # a long video: seek to evenly spaced frames instead of decoding them all (the
-            # sample need not be exact, only spread over the whole video)
-            for pos in np.linspace(0, info.frame_count - 1, cfg.probe_samples + 1)[1:]:
-                cap.set(cv2.CAP_PROP_POS_FRAMES, float(round(pos)))
-                ok, frame = cap.read()
-                if ok and frame is not None and frame.shape == first.shape:
-                    samples.append(probe.to_analysis(frame))
-            seeked = len(samples) > cfg.probe_samples // 2
-            if not seeked:  # seeking failed: decode them all
-                samples = samples[:1]
-                cap.release()
-                cap, _ = open_video(video)
-                cap.grab()
         # Sample evenly without knowing the length: keep every `stride`-th frame, and halve the
         # sample (doubling the stride) whenever it reaches twice the wanted size.
+        samples = [probe.to_analysis(first)]
         stride, index = 1, 0
-        while not seeked:
+        while True:
             index += 1
             if index % stride:
                 if not cap.grab():

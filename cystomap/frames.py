@@ -41,8 +41,9 @@ gap. ``max_frames`` raises the spacing until the selection fits, so kept frames 
 the whole video.
 
 The video is decoded streaming, so memory grows only by a few numbers per frame: a probe of the
-FOV and brightness on a sample (by seeking in a long video, by decoding in a short one), the
-scoring pass (decoded and reduced to the small grey copy in a worker thread while the previous
+FOV and brightness on a sample (decoding the whole video, converting only the sampled frames:
+seeking to the samples instead was measured slower, 65.7 s for 64 seeks in an 1800-frame FFV1
+video at load 12), the scoring pass (decoded and reduced to the small grey copy in a worker thread while the previous
 frame is scored) and the writing of the kept frames (decoding only up to the last kept one,
 skipping the others without colour conversion, PNGs written by ``threads`` threads).
 

@@ -73,7 +73,7 @@ def run_workflow(root: Path, truth: Path, cores: int) -> float:
     cam = {k: camera[k] for k in ("width", "height", "fx", "fy", "cx", "cy",
                                   "k1", "k2", "p1", "p2", "k3")}
     root.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame([{"subject": SUBJECT, "session": "s1", "video": str(truth / "video.mp4"),
+    pd.DataFrame([{"subject": SUBJECT, "session": "s1", "video": str((truth / "video.mp4").resolve()),
                    "date": "2026-01-05", "camera": "phantom",
                    "extent_mm": meta["extent_mm"]}]).to_csv(root / "sessions.tsv", sep="\t",
                                                             index=False)
