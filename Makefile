@@ -5,6 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CORES ?= 2
+RECORDING_ARGS ?=
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PKGS :=
 
@@ -49,9 +50,11 @@ browser:
 	   $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
 
 ## full-size benchmarks; writes tables under results/bench/
+## (RECORDING_ARGS, e.g. "--lengths 60,120 --scale 0.3333": the recording suite's options)
 bench: setup
 	$(BIN)/python -m cystomap.bench --out results/bench
 	$(BIN)/python -m cystomap.bench.sfm --out results/bench
+	$(BIN)/python -m cystomap.bench.recording --out results/bench $(RECORDING_ARGS)
 
 clean:
 	rm -rf results logs benchmarks .snakemake

@@ -12,6 +12,7 @@ import logging
 import math
 import time
 from array import array
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,6 +25,7 @@ import scipy.sparse.linalg as spla
 from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.frame_tracking import _Look, _matched_ratio, _Tracker
+from cystomap.parallel import prefetch
 from cystomap.video import erode, fov_mask, iter_frames, open_video, static_pixels, temporal_std
 
 if TYPE_CHECKING:
@@ -34,6 +36,8 @@ log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 5.0
 # at most this many frames back for sharpness comparisons (memory: one cell map per frame)
 _MAX_PAIR_REACH = 256
+# frames decoded ahead of the scoring (in a worker thread)
+_DECODE_AHEAD = 16
 # weak pull of the content-matched log-sharpness towards the raw one; Huber scale of the fit
 _QUALITY_PRIOR = 0.01
 _QUALITY_HUBER = 0.2
@@ -53,6 +57,9 @@ class _Probe:
     brightness: float
     dark_level: float
     static_share: float = 0.0
+    # diagonal of the lit field of view's bounding box, full-resolution pixels (the scale of
+    # the spacing between kept frames)
+    fov_diagonal: float = 0.0
 
     def to_analysis(self, frame: np.ndarray) -> np.ndarray:
         grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
@@ -105,6 +112,9 @@ def _probe(video: Path, cfg: FramesConfig, camera: Camera | None) -> _Probe:
     if mask is None:
         mask = np.full((ah, aw), 255, np.uint8)
     probe.fov_share = float(np.count_nonzero(mask)) / mask.size
+    ys, xs = np.nonzero(mask)
+    probe.fov_diagonal = math.hypot((xs.max() - xs.min() + 1) * w / aw,
+                                    (ys.max() - ys.min() + 1) * h / ah)
     score = erode(mask, cfg.fov_erode_px)
     static = static_pixels(variation, score > 0, cfg.static_rel)
     if static is not None:
@@ -169,11 +179,15 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
     k = 2 * max(2, round(probe.aw / 60)) + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     t0 = last_log = time.perf_counter()
-    for index, time_s, frame in iter_frames(video):
-        if (frame.shape[1], frame.shape[0]) != (probe.width, probe.height):
-            raise InputError(f"{video}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, "
-                             f"frame 0 was {probe.width}x{probe.height}")
-        grey = probe.to_analysis(frame)
+    def decoded() -> Iterator[tuple[int, float, np.ndarray]]:
+        """The analysis grey of every frame (decoded and reduced in the worker thread)."""
+        for index, time_s, frame in iter_frames(video):
+            if (frame.shape[1], frame.shape[0]) != (probe.width, probe.height):
+                raise InputError(f"{video}: frame {index} is {frame.shape[1]}x"
+                                 f"{frame.shape[0]}, frame 0 was {probe.width}x{probe.height}")
+            yield index, time_s, probe.to_analysis(frame)
+
+    for index, time_s, grey in prefetch(decoded(), _DECODE_AHEAD):
         values = grey[probe.score_mask]
         mean = float(values.mean())
         saturated_px = grey >= cfg.saturation_level

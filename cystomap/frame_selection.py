@@ -103,7 +103,9 @@ def _select(s: _Scores, cfg: FramesConfig, probe: _Probe) -> _Selection:
             last, p = best, best_p + 1
         return kept
 
-    diagonal = math.hypot(probe.width, probe.height)
+    # the spacing scales with the lit field of view, not the frame (black borders, a round
+    # scope image in a wide frame)
+    diagonal = probe.fov_diagonal or math.hypot(probe.width, probe.height)
     base_thr = cfg.min_motion * diagonal
     base = greedy(base_thr)
     kept, thr = base, base_thr

@@ -175,7 +175,12 @@ def test_scope_like_video(tmp_path: Path) -> None:
         0.45 * sv.WIDTH))) / (sv.WIDTH * sv.HEIGHT)
     assert summary["fov_share"] == pytest.approx(true_share, abs=0.03)
     kept = [r for r in rows if r["kept"]]
-    threshold = cfg.min_motion * DIAGONAL
+    # the spacing scales with the round FOV's bounding box, not the frame's diagonal
+    fov_diagonal = math.hypot(0.9 * sv.WIDTH, min(0.9 * sv.WIDTH, sv.HEIGHT))
+    assert summary["thresholds"]["fov_diagonal_px"] == pytest.approx(fov_diagonal, rel=0.05)
+    threshold = summary["thresholds"]["min_motion_px"]
+    assert threshold == pytest.approx(cfg.min_motion * summary["thresholds"]["fov_diagonal_px"],
+                                      abs=0.01)
     assert all(threshold <= r["motion_px"] < 2.5 * threshold for r in kept[1:]
                if r["frame"] != 44)  # the first frame after the dip may have moved further
     assert 8 <= len(kept) <= 16

@@ -11,6 +11,7 @@ TEXTURE_MODES = ("procedural", "mosaic")
 TEXTURE_FAMILIES = ("A", "B", "C")  # defined in cystomap.phantom.texture.TEXTURE_FAMILIES
 LESION_KINDS = ("painted", "papillary", "cis", "scar", "perivascular")
 LESION_SITES = ("any", "seam", "pole", "neck")
+TRAJECTORIES = ("sweep", "recording")
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,14 @@ class PhantomConfig:
     n_frames: int = setting(124, ">= 2")
     # Frame rate of the rendered videos.
     fps: float = setting(10.0, "> 0")
+    # Camera timing: "sweep" = the scan path in n_frames evenly spaced steps; "recording" = the
+    # same path on a urologist's timing (slow scan, the scope held still 1.2-3 s, taken back over
+    # the stretch just seen, bent fast; hand tremor; cystomap.phantom.recording), its ground truth
+    # as for a sweep (poses per video frame; truth.json frames.motion labels each frame scan,
+    # pause, bend or back). Motion blur (motion_blur_px) follows the image speed: the bends.
+    trajectory: str = setting("sweep", choices=TRAJECTORIES)
+    # Recording: its length in seconds at fps (frames = round(duration_s * fps)); 0 = n_frames.
+    duration_s: float = setting(0.0, ">= 0")
     # Overall bladder size (mm) along its three axes.
     size_mm: tuple[float, float, float] = setting((170.0, 130.0, 110.0), "> 0")
     # Diameter of the aperture to the urethra (mm).
@@ -97,6 +106,14 @@ class PhantomConfig:
     # +-180 deg azimuth seam; pole = over the top pole; neck = its edge about 4 deg beyond the
     # aperture.
     lesion_sites: tuple[str, ...] = setting((), choices=LESION_SITES)
+
+    @property
+    def frame_count(self) -> int:
+        """Frames in each session's video: ``duration_s * fps`` for a recording, else
+        ``n_frames``."""
+        if self.trajectory == "recording" and self.duration_s > 0:
+            return max(2, round(self.duration_s * self.fps))
+        return self.n_frames
 
     def __post_init__(self) -> None:
         problems = []

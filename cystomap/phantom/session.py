@@ -81,10 +81,10 @@ def _quaternions(rot: np.ndarray) -> np.ndarray:
 
 
 def _bad_frames(cfg: PhantomConfig, session: int) -> dict[int, str]:
-    n_bad = round(cfg.bad_frame_fraction * cfg.n_frames)
+    n_bad = round(cfg.bad_frame_fraction * cfg.frame_count)
     if n_bad == 0:
         return {}
-    pool = np.arange(2, cfg.n_frames - 2) if cfg.n_frames > 6 else np.arange(cfg.n_frames)
+    pool = np.arange(2, cfg.frame_count - 2) if cfg.frame_count > 6 else np.arange(cfg.frame_count)
     n_bad = min(n_bad, len(pool))
     g = rng(cfg, STREAM_BAD + session)
     frames = np.sort(g.choice(pool, size=n_bad, replace=False))
@@ -205,7 +205,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     if session == 2 and lesions:
         paint_lesions(cube, lesions, base, scene1)
     traj = make_trajectory(cfg, session, bladder, scene)
-    n = cfg.n_frames
+    n = cfg.frame_count
     photo = photometry(cfg, session)
     rays = pixel_rays(camera)
     if photo["vignetting_exponent"] != 3.0:
@@ -341,7 +341,7 @@ def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, a
         "generator": "cystomap.phantom",
         "seed": cfg.seed,
         "session": session,
-        "n_frames": cfg.n_frames,
+        "n_frames": cfg.frame_count,
         "fps": cfg.fps,
         "width": camera.width,
         "height": camera.height,
@@ -396,7 +396,9 @@ def _truth(cfg: PhantomConfig, session: int, camera: Camera, bladder: Bladder, a
             "exposure": [float(f"{x:.6g}") for x in exposure],
             "motion_blur_px": r2(blur_len),
             "motion_blur_angle_deg": r2(np.degrees(blur_ang)),
+            **({"motion": traj.motion} if traj.motion is not None else {}),
         },
+        "trajectory": cfg.trajectory,
         "rotation_per_frame_deg": {"max": float(rot_steps.max()), "mean": float(rot_steps.mean())},
         "translation_per_frame_mm": {"max": float(traj.translation_steps_mm().max()),
                                      "mean": float(traj.translation_steps_mm().mean())},

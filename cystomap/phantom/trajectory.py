@@ -17,7 +17,9 @@ moves on a ~20 mm orbit around the barycentre and SfM has parallax):
 The image's short axis follows the direction of the sweep (long axis across it, which
 widens the band each sweep covers). Frames are spaced evenly in "rotation + 0.8 deg per mm
 of translation", so the path scales with ``n_frames``. Session 2 starts at another azimuth
-and sweeps the other way.
+and sweeps the other way. With ``trajectory: recording`` the same path is travelled on the
+timing of a urologist's recording instead (pauses, returns, fast bends, hand tremor; see
+:mod:`cystomap.phantom.recording`).
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ class Trajectory:
     centres: np.ndarray  # (n, 3) camera centres, mm
     targets: np.ndarray  # (n, 3) aimed wall point per frame
     phase: list[str]  # per frame: entry / dome / side / neck / return / exit
+    # per frame, recording mode only: scan / pause / bend / back (None for the sweep)
+    motion: list[str] | None = None
 
     def rotation_steps_deg(self) -> np.ndarray:
         r = self.rotations
@@ -146,6 +150,25 @@ def _oriented_frames(view: np.ndarray, tangent: np.ndarray, labels: np.ndarray,
 
 
 def make_trajectory(cfg: PhantomConfig, session: int, bladder: Bladder, scene) -> Trajectory:
+    """The session's camera path: evenly spaced (``sweep``) or on a recording's timing."""
+    rot, cen, tgt, lab, cum = _dense_path(cfg, session, bladder, scene)
+    n = cfg.frame_count
+    if cfg.trajectory == "recording":
+        from cystomap.phantom.recording import recording_timing, with_tremor
+
+        g = rng(cfg, STREAM_PATH + session, 1)
+        share, motion = recording_timing(n, cfg.fps, g)
+        traj = _resample(rot, cen, tgt, lab, cum, share * cum[-1])
+        traj.rotations = with_tremor(traj.rotations, cfg.fps, g)
+        traj.motion = motion
+        return traj
+    return _resample(rot, cen, tgt, lab, cum, np.linspace(0, cum[-1], n))
+
+
+def _dense_path(cfg: PhantomConfig, session: int, bladder: Bladder, scene,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Dense samples of the path: rotations, centres, targets, phase labels and the
+    cumulative image motion ("rotation + DEG_PER_MM deg per mm") along it."""
     g = rng(cfg, STREAM_PATH + session)
     az0 = float(g.uniform(-180, 180))
     sign = 1.0 if session == 1 else -1.0
@@ -222,15 +245,16 @@ def make_trajectory(cfg: PhantomConfig, session: int, bladder: Bladder, scene) -
     d_all = np.linalg.norm(all_t - all_c, axis=1)
     zoom = np.clip(rho_all / d_all, 1.0, 3.0)[1:]
     cum = np.r_[0, np.cumsum(np.hypot(dang * zoom, DEG_PER_MM * dtr))]
-    pick = np.searchsorted(cum, np.linspace(0, cum[-1], cfg.n_frames)).clip(0, len(cum) - 1)
-    # refine: interpolate between the dense neighbours for exact spacing
-    return _resample(rot, all_c, all_t, all_lab, cum, cfg.n_frames, pick)
+    return rot, all_c, all_t, all_lab, cum
 
 
-def _resample(rot, cen, tgt, lab, cum, n, pick) -> Trajectory:
+def _resample(rot, cen, tgt, lab, cum, want: np.ndarray) -> Trajectory:
+    """Poses at the path positions ``want`` (in ``cum`` units), interpolated between the dense
+    neighbours (exact spacing)."""
     from scipy.spatial.transform import Rotation, Slerp
 
-    want = np.linspace(0, cum[-1], n)
+    n = len(want)
+    pick = np.searchsorted(cum, want).clip(0, len(cum) - 1)
     i1 = np.clip(np.searchsorted(cum, want, side="left"), 1, len(cum) - 1)
     i0 = i1 - 1
     span = np.maximum(cum[i1] - cum[i0], 1e-12)
