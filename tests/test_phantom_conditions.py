@@ -325,3 +325,17 @@ def test_lesion_kinds_paint():
                 ring.append(np.abs(s1.sample(p)[0] - wall.sample(p)[0]).max(1))
             ring = np.concatenate(ring)
             assert (ring > 20).sum() > 90  # measured 191
+
+
+def test_lesions_bound_to_a_site_are_placed_before_the_rest():
+    """FROC pair 103: its 29 mm lesion (anywhere) was placed first and took the pole's small
+    window, so the 4.4 mm pole lesion could not be placed and the benchmark stopped."""
+    from cystomap.bench.froc import random_pair
+    from cystomap.phantom.geometry import base_bladder
+    from cystomap.phantom.lesions import place_lesions
+
+    cfg = random_pair(103).cfg
+    bladder = base_bladder(cfg)
+    lesions = place_lesions(cfg, bladder, bladder.scene())
+    assert [les.site for les in lesions] == list(cfg.lesion_sites)
+    assert [les.diameter_mm for les in lesions] == list(cfg.lesion_diameters_mm)

@@ -96,11 +96,15 @@ def aperture_cone(bladder: Bladder) -> tuple[np.ndarray, float]:
 
 
 def place_lesions(cfg: PhantomConfig, bladder: Bladder, scene) -> list[Lesion]:
-    """Random lesion sites on the session-1 wall (seeded; larger lesions placed first)."""
+    """Random lesion sites on the session-1 wall (seeded; lesions bound to a site, then larger
+    lesions, placed first)."""
     g = rng(cfg, STREAM_LESIONS)
     ap_dir, ap_ang = aperture_cone(bladder)
     kinds, sites = lesion_kinds_and_sites(cfg)
-    order = np.argsort(-np.asarray(cfg.lesion_diameters_mm), kind="stable")
+    # lesions bound to a site (seam, pole, neck: a small window each) first, so that a large
+    # lesion placed anywhere cannot take the window; then larger before smaller
+    order = sorted(range(len(cfg.lesion_diameters_mm)),
+                   key=lambda i: (sites[i] == "any", -cfg.lesion_diameters_mm[i]))
     placed: dict[int, Lesion] = {}
 
     def wall_radius(u: np.ndarray) -> float:
