@@ -280,10 +280,13 @@ def make_study(root: Path) -> Path:
     return root
 
 
+TIMING_KEYS = {"elapsed_s", "timing"}  # frames.json's "timing": seconds per pass, decoded_fps
+
+
 def without_timings(value):
-    """A stage summary without its wall time (elapsed_s), which differs from run to run."""
+    """A stage summary without its wall times, which differ from run to run."""
     if isinstance(value, dict):
-        return {k: without_timings(v) for k, v in value.items() if k != "elapsed_s"}
+        return {k: without_timings(v) for k, v in value.items() if k not in TIMING_KEYS}
     if isinstance(value, list):
         return [without_timings(v) for v in value]
     return value
