@@ -339,3 +339,15 @@ def test_lesions_bound_to_a_site_are_placed_before_the_rest():
     lesions = place_lesions(cfg, bladder, bladder.scene())
     assert [les.site for les in lesions] == list(cfg.lesion_sites)
     assert [les.diameter_mm for les in lesions] == list(cfg.lesion_diameters_mm)
+
+
+def test_froc_counts_the_lesions_of_a_failed_session_as_missed():
+    """A pair whose session the sfm stage refused (StageError) is scored, not a crash."""
+    from cystomap.bench.froc import failed_rows, random_pair, summarise
+
+    rows = failed_rows(random_pair(105), (0.1, 1.0), "sfm: only 24 of 120 frames registered")
+    rows += failed_rows(random_pair(1100, no_change=True), (0.1, 1.0), "sfm: failed")
+    summary = {(r["rate"], r["subset"]): r for r in summarise(rows)}
+    whole = summary[(0.1, "all")]
+    assert whole["lesions"] == 6 and whole["recall"] == 0.0 and whole["fp_per_pair"] == 0.0
+    assert whole["no_change_pairs"] == 1

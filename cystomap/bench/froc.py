@@ -33,8 +33,10 @@ from typing import Any
 import numpy as np
 
 from cystomap.bench.pipeline import run_session
+from cystomap.errors import StageError
 from cystomap.phantom import PhantomConfig, default_camera
 from cystomap.phantom.config import LESION_KINDS, TEXTURE_FAMILIES
+from cystomap.phantom.lesions import lesion_kinds_and_sites
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +158,25 @@ def score_pair(work: Path, pair: Pair, roots: list[Path], rates: tuple[float, ..
     return rows
 
 
+def failed_rows(pair: Pair, rates: tuple[float, ...], reason: str) -> list[dict[str, Any]]:
+    """Rows of a pair whose session failed (the stage said so): every lesion missed, no region."""
+    kinds, sites = lesion_kinds_and_sites(pair.cfg)
+    base = {"family": pair.cfg.texture_family, "deformation": pair.cfg.deformation,
+            "no_change": pair.no_change, "registered": None, "compare_s": None,
+            "false_positives": 0, "regions": 0, "failed": reason[:200]}
+    rows: list[dict[str, Any]] = []
+    for rate in rates:
+        head = {"pair": pair.name, "rate": rate, **base}
+        rows += [{**head, "lesion": i + 1, "kind": k, "site": st, "diameter_mm": d,
+                  "detected": False, "centroid_error_mm": None, "size_error_pct": None}
+                 for i, (d, k, st) in enumerate(zip(pair.cfg.lesion_diameters_mm, kinds, sites,
+                                                    strict=True))]
+        if pair.no_change:
+            rows.append({**head, "lesion": "", "kind": "", "site": "", "diameter_mm": None,
+                         "detected": None, "centroid_error_mm": None, "size_error_pct": None})
+    return rows
+
+
 def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per rate and subset (all, held-out family, held-out kind, the rest): false positives
     per pair and recall per size band."""
@@ -253,7 +274,13 @@ def bench_froc(work: Path, out: Path, n_pairs: int = 30, n_no_change: int = 10, 
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     for pair in pairs(n_pairs, n_no_change, first_seed, n_frames=n_frames):
-        roots, build_s = build_pair(work, pair, width, height)
+        try:
+            roots, build_s = build_pair(work, pair, width, height)
+        except StageError as exc:  # a session the pipeline cannot reconstruct: its lesions missed
+            log.warning("froc: %s: a session failed, its lesions count as missed: %s", pair.name, exc)
+            rows += failed_rows(pair, rates, str(exc))
+            _write_csv(out / "froc_lesions.csv", rows)
+            continue
         log.info("froc: %s built (%.0f s): %s", pair.name, build_s, pair.cfg)
         rows += [{**r, "build_s": round(build_s)} for r in score_pair(work, pair, roots, rates)]
         _write_csv(out / "froc_lesions.csv", rows)  # after every pair: a partial run is kept
