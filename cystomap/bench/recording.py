@@ -30,6 +30,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from cystomap.bench.common import write_table
 from cystomap.phantom import PhantomConfig, default_camera, generate_session
 
 log = logging.getLogger("cystomap.bench.recording")
@@ -161,17 +162,6 @@ def bench(cache: Path, lengths: Sequence[float], fps: float, width: int, height:
     return rows
 
 
-def write_table(rows: list[dict[str, Any]], out: Path, meta: dict[str, Any]) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    df = pd.DataFrame(rows)
-    df.to_csv(out / "recording.tsv", sep="\t", index=False)
-    info = ", ".join(f"{k} {v}" for k, v in meta.items())
-    (out / "recording.md").write_text(
-        "# Recording-like phantom sessions, video to atlas (Snakemake benchmark files)\n\n"
-        f"{df.T.to_markdown()}\n\nTimes in seconds (wall, and CPU of the job), memory = peak "
-        f"RSS of each job in MB. {info}\n")
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cystomap.bench.recording", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -189,13 +179,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     w, h = (int(v) for v in args.size.split("x"))
     width, height = round(w * args.scale / 2) * 2, round(h * args.scale / 2) * 2
-    import os
-
-    load = " ".join(f"{v:.1f}" for v in os.getloadavg())
     rows = bench(args.cache or args.out / "recording", [float(s) for s in args.lengths.split(",")],
                  args.fps, width, height, args.seed, args.cores)
-    write_table(rows, args.out, {"cores": os.cpu_count(), "load at start": load,
-                                 "date": time.strftime("%Y-%m-%d %H:%M:%S")})
+    write_table(rows, args.out, "recording",
+                "Recording-like phantom sessions, video to atlas (Snakemake benchmark files; times "
+                f"in s, wall and CPU of each job, memory = peak RSS in MB; {time.strftime('%Y-%m-%d')})")
     print((args.out / "recording.md").read_text())
     return 0
 
