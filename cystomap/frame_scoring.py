@@ -1,9 +1,11 @@
-"""The two scoring passes of the ``frames`` stage (:mod:`cystomap.frames`).
+"""The probe and the scoring of the ``frames`` stage (:mod:`cystomap.frames`).
 
-Pass 1 (:func:`_probe`) samples the video for its field of view, static overlays and typical
-brightness; pass 2 (:func:`_score`) decodes every frame, measures sharpness, saturation,
-darkness and the motion chained by the tracker, and :func:`_quality` turns the pairwise
-content-matched sharpness ratios into one sharpness per frame (robust least squares).
+The probe (:func:`_new_probe` from the first frame, :func:`_finish_probe` from an even sample
+of analysis greys gathered by :class:`_Sampler` while decoding) finds the field of view, static
+overlays and typical brightness; :func:`_score` measures the sharpness, saturation and darkness
+of every frame's analysis grey and the motion chained by the tracker, and :func:`_quality` turns
+the pairwise content-matched sharpness ratios into one sharpness per frame (robust least
+squares).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import logging
 import math
 import time
 from array import array
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -26,7 +28,7 @@ from cystomap.camera import Camera
 from cystomap.errors import InputError
 from cystomap.frame_tracking import _Look, _matched_ratio, _Tracker
 from cystomap.parallel import prefetch
-from cystomap.video import erode, fov_mask, iter_frames, open_video, static_pixels, temporal_std
+from cystomap.video import erode, fov_mask, static_pixels, temporal_std
 
 if TYPE_CHECKING:
     from cystomap.frames import FramesConfig
@@ -36,7 +38,7 @@ log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 5.0
 # at most this many frames back for sharpness comparisons (memory: one cell map per frame)
 _MAX_PAIR_REACH = 256
-# frames decoded ahead of the scoring (in a worker thread)
+# frames measured ahead of the tracking (in a worker thread)
 _DECODE_AHEAD = 16
 # weak pull of the content-matched log-sharpness towards the raw one; Huber scale of the fit
 _QUALITY_PRIOR = 0.01
@@ -61,47 +63,56 @@ class _Probe:
     # the spacing between kept frames)
     fov_diagonal: float = 0.0
 
-    def to_analysis(self, frame: np.ndarray) -> np.ndarray:
-        grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
-        if (grey.shape[1], grey.shape[0]) != (self.aw, self.ah):
-            grey = cv2.resize(grey, (self.aw, self.ah), interpolation=cv2.INTER_AREA)
-        return grey
 
 
-def _probe(video: Path, cfg: FramesConfig, camera: Camera | None) -> _Probe:
-    """Validate the video and derive the FOV and typical brightness from a sample of frames."""
-    cap, info = open_video(video)
-    try:
-        ok, first = cap.read()
-        if not ok or first is None:
-            raise InputError(f"{video}: no decodable frame (not a video, or corrupt)")
-        h, w = first.shape[:2]
-        if camera is not None and (w, h) != (camera.width, camera.height):
-            raise InputError(f"{video}: frame size {w}x{h} does not match camera "
-                             f"{camera.name!r} ({camera.width}x{camera.height})")
-        aw = min(cfg.analysis_width, w)
-        ah = max(8, round(h * aw / w))
-        probe = _Probe(w, h, info.fps, aw, ah, np.ones((ah, aw), bool),
-                       np.full((ah, aw), 255, np.uint8), np.zeros((0, 2)), 1.0, 0.0, 0.0)
-        # Sample evenly without knowing the length: keep every `stride`-th frame, and halve the
-        # sample (doubling the stride) whenever it reaches twice the wanted size.
-        samples = [probe.to_analysis(first)]
-        stride, index = 1, 0
-        while True:
-            index += 1
-            if index % stride:
-                if not cap.grab():
-                    break
-                continue
-            ok, frame = cap.read()
-            if not ok or frame is None:
-                break
-            samples.append(probe.to_analysis(frame))
-            if len(samples) >= 2 * cfg.probe_samples:
-                samples, stride = samples[::2], stride * 2
-    finally:
-        cap.release()
+def analysis_size(width: int, height: int, cfg: FramesConfig) -> tuple[int, int]:
+    """Size (w, h) of the grey copy frames are scored on: ``analysis_width`` wide at most."""
+    aw = min(cfg.analysis_width, width)
+    return aw, max(8, round(height * aw / width))
 
+
+def to_analysis(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The analysis grey of a decoded frame (BGR or grey), INTER_AREA-downscaled to ``size``."""
+    grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+    if (grey.shape[1], grey.shape[0]) != size:
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return grey
+
+
+class _Sampler:
+    """An even sample of a stream of unknown length: every ``stride``-th frame, the sample
+    halved (the stride doubled) whenever it reaches twice the wanted size ``n``."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.stride = 1
+        self.samples: list[np.ndarray] = []
+
+    def add(self, index: int, grey: np.ndarray) -> None:
+        if index % self.stride:
+            return
+        self.samples.append(grey)
+        if len(self.samples) >= 2 * self.n:
+            self.samples, self.stride = self.samples[::2], self.stride * 2
+
+
+def _new_probe(video: Path, first: np.ndarray, fps: float, cfg: FramesConfig,
+               camera: Camera | None) -> _Probe:
+    """The probe's frame geometry from the first decoded frame (InputError on a size that
+    does not match ``camera``); the rest comes from :func:`_finish_probe`."""
+    h, w = first.shape[:2]
+    if camera is not None and (w, h) != (camera.width, camera.height):
+        raise InputError(f"{video}: frame size {w}x{h} does not match camera "
+                         f"{camera.name!r} ({camera.width}x{camera.height})")
+    aw, ah = analysis_size(w, h, cfg)
+    return _Probe(w, h, fps, aw, ah, np.ones((ah, aw), bool),
+                  np.full((ah, aw), 255, np.uint8), np.zeros((0, 2)), 1.0, 0.0, 0.0)
+
+
+def _finish_probe(video: Path, probe: _Probe, samples: list[np.ndarray],
+                  cfg: FramesConfig) -> _Probe:
+    """Derive the FOV, static overlays and typical brightness from the sampled analysis greys."""
+    aw, ah, w, h = probe.aw, probe.ah, probe.width, probe.height
     variation = temporal_std(samples) if len(samples) >= 8 else None
     mask = None
     if cfg.fov == "auto":
@@ -159,7 +170,48 @@ class _Scores:
     matched: np.ndarray  # bool: compared with at least one overlapping frame of its segment
 
 
-def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
+@dataclass
+class _Measure:
+    """What one frame shows, measured on its own (no other frame needed)."""
+
+    sharpness: float
+    saturated: float
+    dark: float
+    usable: bool  # neither dark nor overexposed
+    glints: np.ndarray | None  # bool image: saturated blobs and their halos
+    look: _Look | None
+
+
+def _measure(grey: np.ndarray, cfg: FramesConfig, probe: _Probe, kernel: np.ndarray,
+             ) -> _Measure:
+    values = grey[probe.score_mask]
+    mean = float(values.mean())
+    saturated_px = grey >= cfg.saturation_level
+    sat = float(np.count_nonzero(saturated_px & probe.score_mask)) / values.size
+    dark = float(np.count_nonzero(values < probe.dark_level)) / values.size
+    valid = probe.score_mask
+    glints = None
+    if saturated_px.any():
+        glints = cv2.dilate(saturated_px.view(np.uint8), kernel) > 0
+        valid = valid & ~glints
+    usable = dark <= cfg.max_dark and sat <= cfg.max_saturated
+    look = None
+    sharpness = 0.0
+    if mean >= 1.0 and valid.any():
+        smooth = grey.astype(np.float32)
+        if cfg.sharpness_sigma > 0:
+            smooth = cv2.GaussianBlur(smooth, (0, 0), cfg.sharpness_sigma)
+        energy = np.square(cv2.Laplacian(smooth, cv2.CV_32F))
+        sharpness = float(np.mean(energy[valid])) * (100.0 / mean) ** 2
+        if usable:
+            look = _Look.of(energy, valid, grey, sharpness)
+    return _Measure(sharpness, sat, dark, usable, glints, look)
+
+
+def _score(greys: Iterable[tuple[int, float, np.ndarray]], cfg: FramesConfig, probe: _Probe,
+           ) -> _Scores:
+    """Score the analysis greys ``(index, time_s, grey)`` of every frame, in order: each
+    frame measured on its own in a worker thread, tracked and compared here."""
     times: list[float] = []
     sharp: list[float] = []
     sat: list[float] = []
@@ -179,38 +231,17 @@ def _score(video: Path, cfg: FramesConfig, probe: _Probe) -> _Scores:
     k = 2 * max(2, round(probe.aw / 60)) + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     t0 = last_log = time.perf_counter()
-    def decoded() -> Iterator[tuple[int, float, np.ndarray]]:
-        """The analysis grey of every frame (decoded and reduced in the worker thread)."""
-        for index, time_s, frame in iter_frames(video):
-            if (frame.shape[1], frame.shape[0]) != (probe.width, probe.height):
-                raise InputError(f"{video}: frame {index} is {frame.shape[1]}x"
-                                 f"{frame.shape[0]}, frame 0 was {probe.width}x{probe.height}")
-            yield index, time_s, probe.to_analysis(frame)
 
-    for index, time_s, grey in prefetch(decoded(), _DECODE_AHEAD):
-        values = grey[probe.score_mask]
-        mean = float(values.mean())
-        saturated_px = grey >= cfg.saturation_level
-        sat.append(float(np.count_nonzero(saturated_px & probe.score_mask)) / values.size)
-        dark.append(float(np.count_nonzero(values < probe.dark_level)) / values.size)
-        valid = probe.score_mask
-        glints = None
-        if saturated_px.any():
-            glints = cv2.dilate(saturated_px.view(np.uint8), kernel) > 0
-            valid = valid & ~glints
-        usable = dark[-1] <= cfg.max_dark and sat[-1] <= cfg.max_saturated
-        look = None
-        if mean >= 1.0 and valid.any():
-            smooth = grey.astype(np.float32)
-            if cfg.sharpness_sigma > 0:
-                smooth = cv2.GaussianBlur(smooth, (0, 0), cfg.sharpness_sigma)
-            energy = np.square(cv2.Laplacian(smooth, cv2.CV_32F))
-            sharp.append(float(np.mean(energy[valid])) * (100.0 / mean) ** 2)
-            if usable:
-                look = _Look.of(energy, valid, grey, sharp[-1])
-        else:
-            sharp.append(0.0)
-        seg, transform = tracker.add(grey, glints, usable, look)
+    def measured() -> Iterator[tuple[int, float, np.ndarray, _Measure]]:
+        for index, time_s, grey in greys:
+            yield index, time_s, grey, _measure(grey, cfg, probe, kernel)
+
+    for index, time_s, grey, m in prefetch(measured(), _DECODE_AHEAD):
+        sat.append(m.saturated)
+        dark.append(m.dark)
+        sharp.append(m.sharpness)
+        look = m.look
+        seg, transform = tracker.add(grey, m.glints, m.usable, look)
         segments.append(seg)
         transforms.append(transform)
         recent.pop(index - reach - 1, None)

@@ -313,3 +313,66 @@ def test_config_from_mapping() -> None:
         from_mapping(FramesConfig, {"fov": "octagon"}, "frames")
     with pytest.raises(InputError, match=r"frames\.max_frames"):
         from_mapping(FramesConfig, {"max_frames": "lots"}, "frames")
+
+
+class _CountingCapture:
+    """A cv2.VideoCapture that counts the frames it decodes."""
+
+    def __init__(self, cap: cv2.VideoCapture, counts: dict[str, int]) -> None:
+        self.cap, self.counts = cap, counts
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        self.counts["decoded"] += 1
+        return self.cap.read()
+
+    def grab(self) -> bool:
+        self.counts["decoded"] += 1
+        return self.cap.grab()
+
+    def get(self, prop: int) -> float:
+        return self.cap.get(prop)
+
+    def release(self) -> None:
+        self.cap.release()
+
+
+@pytest.mark.parametrize("write_while_decoding", [True, False])
+def test_video_is_decoded_once(pan_video: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                               write_while_decoding: bool) -> None:
+    """Writing every frame while decoding (and deleting the dropped ones) or decoding the kept
+    ones again: the same PNGs and frames.csv; the first decodes every frame exactly once."""
+    import cystomap.frames as frames
+
+    counts = {"opened": 0, "decoded": 0}
+    real_open = frames.open_video
+
+    def counting_open(path: Path):  # type: ignore[no-untyped-def]
+        cap, info = real_open(path)
+        counts["opened"] += 1
+        return _CountingCapture(cap, counts), info
+
+    monkeypatch.setattr(frames, "open_video", counting_open)
+    monkeypatch.setattr(frames, "_write_while_decoding", lambda *_: write_while_decoding)
+    out = tmp_path / "frames"
+    rows = _run(pan_video, out, EXACT)
+    kept = [r["frame"] for r in rows if r["kept"]]
+    assert len(rows) == N and 0.5 * N < len(kept) < N
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"f{i:06d}.png" for i in kept] + ["frames.csv", "frames.json"])  # no stray greys
+    timing = json.loads((out / "frames.json").read_text())["timing"]
+    if write_while_decoding:
+        # one pass: N frames and the read that finds the end
+        assert counts == {"opened": 1, "decoded": N + 1}
+        assert timing["written_while_decoding"] == N and timing["decoded_again"] == 0
+    else:
+        # the first frames are written anyway (to measure); the kept ones after them again
+        again = [i for i in kept if i > frames._COST_FRAMES]
+        assert counts == {"opened": 2, "decoded": N + 1 + again[-1] + 1}
+        assert timing["decoded_again"] == len(again)
+    reference = tmp_path / "reference"
+    monkeypatch.setattr(frames, "_write_while_decoding", lambda *_: not write_while_decoding)
+    _run(pan_video, reference, EXACT)
+    assert (out / "frames.csv").read_bytes() == (reference / "frames.csv").read_bytes()
+    for i in kept:
+        name = f"f{i:06d}.png"
+        assert (out / name).read_bytes() == (reference / name).read_bytes()
