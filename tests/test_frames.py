@@ -341,7 +341,7 @@ def test_video_is_decoded_once(pan_video: Path, tmp_path: Path, monkeypatch: pyt
                                write_while_decoding: bool) -> None:
     """Writing every frame while decoding (and deleting the dropped ones) or decoding the kept
     ones again: the same PNGs and frames.csv; the first decodes every frame exactly once."""
-    import cystomap.frames as frames
+    import cystomap.frame_decoding as frames
 
     counts = {"opened": 0, "decoded": 0}
     real_open = frames.open_video
