@@ -8,6 +8,7 @@ camera are scaled back afterwards, so the database is in pixels of the full-size
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -220,6 +221,15 @@ def plain_session(counts: list[int], cfg: SfmConfig) -> bool:
     doubling all 120 and 106)."""
     limit = cfg.plain_keypoints_share * cfg.max_num_features
     return bool(limit > 0 and counts and float(np.median(counts)) < limit)
+
+
+def matching_config(features: Features, cfg: SfmConfig) -> SfmConfig:
+    """``cfg`` for matching: with guided matching when the frames were plain (detected again
+    doubled) and ``plain_guided_matching`` is on."""
+    if features.plain and cfg.plain_guided_matching and not cfg.guided_matching:
+        log.info("features: plain frames: guided matching (sfm.plain_guided_matching)")
+        return dataclasses.replace(cfg, guided_matching=True)
+    return cfg
 
 
 def _redetect_plain(database: Path, image_dir: Path, files: list[str], reader: object,
