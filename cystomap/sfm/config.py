@@ -42,9 +42,10 @@ class SfmConfig:
     # default wall 400-500 (unchanged: nothing detected again). Costs about 4x the stage's CPU
     # when it applies. 0 = never
     plain_keypoints_share: float = setting(0.125, "[0, 1]")
-    # ... and then matched with guided_matching (the verified pairs re-matched along their
-    # epipolar geometry), which gives such pairs several times the inliers (family-B session
-    # 302:1 at 640x360: 56 -> 215 on average)
+    # plain sessions (see plain_keypoints_share) are matched with guided_matching: the
+    # verified pairs re-matched along their epipolar geometry, which gives them several times
+    # the inliers of the ratio test alone (family-B session 302:1 at 640x360: 56 -> 215 per
+    # pair on average)
     plain_guided_matching: bool = True
     # number of SIFT octaves
     num_octaves: int = setting(4, "[1, 8]")
