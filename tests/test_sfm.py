@@ -691,3 +691,33 @@ def test_drift_flag_warns_or_fails_the_stage(tmp_path):
     ok = {"consistent": True, "halves": {**halves, "consistent": True}}
     _judge_halves(ok, SfmConfig(), failed, [], None, {})
     assert ok["consistent"] is True and "reason" not in ok
+
+
+def test_plain_frames_are_detected_on_doubled_images(tmp_path_factory, tmp_path):
+    """A pale, coarse-textured wall (phantom texture family B) is too plain for SIFT at
+    640x360: every frame is detected again on the doubled image (sfm.plain_keypoints_share),
+    for several times the keypoints; the default wall is not (same features, no extra cost)."""
+    from cystomap.sfm.features import extract, list_frames, plain_session
+
+    cfg = SfmConfig()
+    assert plain_session([100, 200, 250, 900], cfg)  # median 225 < 2048 / 8
+    assert not plain_session([100, 300, 400], cfg)
+    assert not plain_session([100, 200], from_mapping(SfmConfig, {"plain_keypoints_share": 0},
+                                                      "sfm"))
+    off = from_mapping(SfmConfig, {"plain_keypoints_share": 0}, "sfm")
+    medians = {}
+    for wall, phantom in (("B", {"seed": 302, "texture_family": "B"}), ("default", {})):
+        _, pre = _render_and_preprocess(tmp_path_factory.mktemp(f"plain_{wall}"),
+                                        {"n_frames": 8, "lossless_video": True, **phantom})
+        camera = Camera.load(pre / "camera.json")
+        names = list_frames(pre / "enhanced")
+        for tag, c in (("on", cfg), ("off", off)):
+            work = tmp_path / f"{wall}_{tag}"
+            work.mkdir()
+            f = extract(pre / "enhanced", pre / "mask.png", camera, names, work / "db.db", work, c)
+            medians[wall, tag] = float(np.median(list(f.num_keypoints.values())))
+            assert f.plain == (tuple(names) if (wall, tag) == ("B", "on") else ())
+    # measured (8 frames): B 233 -> 2173 keypoints per frame (median), default wall 440 both ways
+    assert medians["B", "off"] < 256
+    assert medians["B", "on"] > 4 * medians["B", "off"]
+    assert medians["default", "on"] == medians["default", "off"] > 256

@@ -30,6 +30,23 @@ class SfmConfig:
     max_num_features: int = setting(2048, ">= 16")
     # first SIFT octave: -1 doubles the image first (more, finer features, ~3x slower), 0 = no
     first_octave: int = setting(0, choices=(-1, 0, 1))
+    # plain frames: when the median frame has fewer keypoints than this share of
+    # max_num_features, every frame is detected again on the image doubled (one octave finer
+    # than first_octave; the whole session, as frames detected at different octaves match
+    # worse), which finds the fine vessel detail that the working size blurs away. The rule
+    # follows the mapping's need: about a quarter of a frame's keypoints become verified
+    # inliers with its neighbour (0.22-0.34 measured on phantom texture families A and B), so
+    # below 1/8 of the 2048 budget (256) a pair gives little more than the
+    # init_min_num_inliers (50) a model needs to start. Pale, coarse-textured walls at 640x360
+    # (family B) had medians of 200-245 per frame and split into pieces; family A and the
+    # default wall 400-500 (unchanged: nothing detected again). Costs about 4x the stage's CPU
+    # when it applies. 0 = never
+    plain_keypoints_share: float = setting(0.125, "[0, 1]")
+    # plain sessions (see plain_keypoints_share) are matched with guided_matching: the
+    # verified pairs re-matched along their epipolar geometry, which gives them several times
+    # the inliers of the ratio test alone (family-B session 302:1 at 640x360: 56 -> 215 per
+    # pair on average)
+    plain_guided_matching: bool = True
     # number of SIFT octaves
     num_octaves: int = setting(4, "[1, 8]")
     # SIFT peak (contrast) threshold; lower finds more features on low-texture mucosa

@@ -7,6 +7,8 @@ camera are scaled back afterwards, so the database is in pixels of the full-size
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -32,6 +34,9 @@ class Features:
     names: list[str]  # image names in video order (= database order)
     num_keypoints: dict[str, int]
     scale: float  # working size / full size
+    # frames detected again on the image doubled (too plain at the working size, see
+    # SfmConfig.plain_keypoints_share), in video order
+    plain: tuple[str, ...] = ()
 
 
 def list_frames(enhanced_dir: Path) -> list[str]:
@@ -167,6 +172,7 @@ def extract(
         database, image_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
         reader_options=reader, extraction_options=opts, device=pycolmap.Device.cpu,
     )
+    plain = _redetect_plain(database, image_dir, files, reader, opts, work_dir, cfg)
 
     counts: dict[str, int] = {}
     db = pycolmap.Database.open(str(database))
@@ -202,7 +208,92 @@ def extract(
     values = np.array(list(counts.values()) or [0])
     log.info("features: %d frames at %dx%d, %d-%d (median %d) keypoints per frame",
              len(counts), size[0], size[1], values.min(), values.max(), int(np.median(values)))
-    return Features(names=names, num_keypoints=counts, scale=scale)
+    plain_names = tuple(f[: -len(suffix)] if suffix else f for f in plain)
+    return Features(names=names, num_keypoints=counts, scale=scale, plain=plain_names)
+
+
+def plain_session(counts: list[int], cfg: SfmConfig) -> bool:
+    """Whether the frames are too plain at the working size: the median frame has fewer
+    keypoints than ``plain_keypoints_share`` of ``max_num_features``. One decision for the
+    whole session, not per frame: every frame is matched with others (neighbours and loop
+    pairs), and frames detected at different octaves match worse (on two family-B phantom
+    sessions, doubling the 60-90 % of frames in plain stretches registered 50 and 59 frames,
+    doubling all 120 and 106)."""
+    limit = cfg.plain_keypoints_share * cfg.max_num_features
+    return bool(limit > 0 and counts and float(np.median(counts)) < limit)
+
+
+def matching_config(features: Features, cfg: SfmConfig) -> SfmConfig:
+    """``cfg`` for matching: with guided matching when the frames were plain (detected again
+    doubled) and ``plain_guided_matching`` is on."""
+    if features.plain and cfg.plain_guided_matching and not cfg.guided_matching:
+        log.info("features: plain frames: guided matching (sfm.plain_guided_matching)")
+        return dataclasses.replace(cfg, guided_matching=True)
+    return cfg
+
+
+def _redetect_plain(database: Path, image_dir: Path, files: list[str], reader: object,
+                    opts: object, work_dir: Path, cfg: SfmConfig) -> list[str]:
+    """Detect every frame again one octave finer (the image doubled) when the session is
+    plain (:func:`plain_session`), their features in ``database`` in place of the first ones;
+    returns the files detected again. Nothing is done, at no cost, when the frames are not
+    plain or ``first_octave`` is already -1."""
+    import pycolmap
+
+    if cfg.first_octave < 0 or cfg.plain_keypoints_share <= 0:
+        return []
+    db = pycolmap.Database.open(str(database))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        counts = [db.num_keypoints_for_image(ids[f]) if f in ids else 0 for f in files]
+    finally:
+        db.close()
+    if not plain_session(counts, cfg):
+        return []
+    plain = [f for f in files if f in ids]
+    finer = work_dir / "plain.db"
+    finer.unlink(missing_ok=True)
+    pycolmap.Database.open(str(finer)).close()
+    opts2 = copy.deepcopy(opts)  # one octave finer
+    opts2.sift.first_octave = cfg.first_octave - 1
+    pycolmap.import_images(finer, image_dir, pycolmap.CameraMode.SINGLE, plain, reader)
+    pycolmap.extract_features(
+        finer, image_dir, image_names=plain, camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader, extraction_options=opts2, device=pycolmap.Device.cpu,
+    )
+    new: dict[str, tuple[np.ndarray, object]] = {}
+    db2 = pycolmap.Database.open(str(finer))
+    try:
+        for im in db2.read_all_images():
+            if db2.exists_keypoints(im.image_id):
+                new[im.name] = (db2.read_keypoints(im.image_id), db2.read_descriptors(im.image_id))
+    finally:
+        db2.close()
+    finer.unlink(missing_ok=True)
+    # the database cannot replace one image's features: every image's are written again
+    db = pycolmap.Database.open(str(database))
+    try:
+        kept = {}
+        for name, image_id in ids.items():
+            if name not in new and db.exists_keypoints(image_id):
+                kept[image_id] = (db.read_keypoints(image_id), db.read_descriptors(image_id))
+        db.clear_keypoints()
+        db.clear_descriptors()
+        for name, image_id in ids.items():
+            kp_desc = new.get(name) or kept.get(image_id)
+            if kp_desc is not None:
+                db.write_keypoints(image_id, kp_desc[0])
+                db.write_descriptors(image_id, kp_desc[1])
+    finally:
+        db.close()
+    before = [c for f, c in zip(files, counts, strict=True) if f in new]
+    after = [len(new[f][0]) for f in plain if f in new]
+    log.info("features: the frames are plain at the working size (median %d keypoints, "
+             "fewer than %.0f): %d detected again on the image doubled, median %d keypoints",
+             int(np.median(before)) if before else 0,
+             cfg.plain_keypoints_share * cfg.max_num_features, len(new),
+             int(np.median(after)) if after else 0)
+    return [f for f in plain if f in new]
 
 
 def _check_size(img: np.ndarray, camera: Camera, path: Path) -> None:

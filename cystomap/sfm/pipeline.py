@@ -126,6 +126,7 @@ def run_sfm(
         with timer.step("features"):
             features = feat.extract(enhanced, mask, camera, names, database, work, cfg, model,
                                     masks_dir)
+        cfg = feat.matching_config(features, cfg)  # plain frames: guided matching
         with timer.step("matching"):
             verified, n_tried = matching.match_sequence(database, names, work, cfg)
         stride = mapping.keyframe_stride(verified, n, cfg)
