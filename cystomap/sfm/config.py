@@ -39,8 +39,9 @@ class SfmConfig:
     # below 1/8 of the 2048 budget (256) a pair gives little more than the
     # init_min_num_inliers (50) a model needs to start. Pale, coarse-textured walls at 640x360
     # (family B) had medians of 200-245 per frame and split into pieces; family A and the
-    # default wall 400-500 (unchanged: nothing detected again). Costs about 4x the stage's CPU
-    # when it applies. 0 = never
+    # default wall 400-500 (unchanged: nothing detected again). Costs 4-12x the stage's CPU
+    # when it applies (guided matching included; 105-272 CPU-s against ~23 s on 640x360
+    # family-B sessions). 0 = never
     plain_keypoints_share: float = setting(0.125, "[0, 1]")
     # plain sessions (see plain_keypoints_share) are matched with guided_matching: the
     # verified pairs re-matched along their epipolar geometry, which gives them several times
