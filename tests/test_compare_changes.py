@@ -263,3 +263,18 @@ def test_flat_low_contrast_lesion_is_found_by_its_mass(sphere) -> None:
     assert g.delta_e < 12  # low contrast
     # not by its peak: that alone is within what the pair's noise reaches at the rate
     assert g.peak_significance < info["null_tails"]["peak"]["level_at_rate"]
+
+
+@pytest.mark.parametrize("diameter", [5.5, 29.0])
+def test_lesion_over_the_pole_is_one_region_measured_on_the_wall(sphere, diameter) -> None:
+    """A lesion centred over the atlas's pole (it covers every azimuth there): one region, its
+    diameter and centroid measured on the wall, not on the atlas's stretched rows."""
+    proj, rays, grid, _, up = sphere
+    centre = _on_sphere(math.radians(89.0), 0.3)
+    none = np.zeros(grid.shape, bool)
+    regions = _run((proj, rays, grid, centre, up), none, none, diameter=diameter)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    g = regions[0]
+    assert abs(g.diameter_mm - diameter) < 0.2 * diameter, g.diameter_mm
+    assert np.linalg.norm([g.x, g.y, g.z] - centre) < 0.5
+    assert g.local_delta_e > 10

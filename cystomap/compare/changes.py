@@ -89,7 +89,7 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "enclosed", "luminance_a", "luminance_b",
                   "point_distance_mm", "elongation", "observed_share", "delta_e",
-                  "expected_false", "mass")
+                  "local_delta_e", "expected_false", "mass")
 
 
 @dataclass
@@ -117,6 +117,7 @@ class Region:
     elongation: float = 1.0  # length / width on the wall (principal axes)
     observed_share: float = 1.0  # share of the area both sessions saw (rest: bridged gap)
     delta_e: float = 0.0  # CIE76 colour difference of the region's mean colours, A vs B
+    local_delta_e: float = 0.0  # the same of the region's colour relative to its ring's
     expected_false: float = 0.0  # expected number of null regions at least this strong
     mass: float = 0.0  # excess significance mass above the candidate level (noise units · mm²)
 
@@ -134,6 +135,7 @@ class Region:
                 "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
                 "observed_share": self.observed_share, "delta_e": self.delta_e,
+                "local_delta_e": self.local_delta_e,
                 "expected_false": self.expected_false, "mass": self.mass}
 
 
@@ -161,6 +163,28 @@ def mean_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nda
     means = np.stack([(a_rgb * w[:, None]).sum(0), (b_rgb * w[:, None]).sum(0)])
     lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
     return float(np.linalg.norm(lab[1] - lab[0]))
+
+
+def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.ndarray,
+                            a_ring: np.ndarray, b_ring: np.ndarray, ring_weights: np.ndarray,
+                            ) -> float:
+    """CIE76 ΔE*ab of the change of a region's mean colour relative to its ring's: the norm of
+    (Lab_B(region) − Lab_B(ring)) − (Lab_A(region) − Lab_A(ring)).
+
+    Photometric residue the illumination matching leaves (a smooth gain, a white balance
+    that differs over the wall) shifts the region and the wall around it alike and cancels;
+    a lesion changes its patch, not the wall around it.
+    """
+    import cv2
+
+    def mean(rgb: np.ndarray, w: np.ndarray) -> np.ndarray:
+        w = w / max(float(w.sum()), 1e-12)
+        return (rgb * w[:, None]).sum(0)
+
+    means = np.stack([mean(a_rgb, weights), mean(b_rgb, weights), mean(a_ring, ring_weights),
+                      mean(b_ring, ring_weights)])
+    lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
+    return float(np.linalg.norm((lab[1] - lab[3]) - (lab[0] - lab[2])))
 
 
 def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
@@ -455,6 +479,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         col, row = proj_full.point_to_pixel(centroid[None])
         mean_sig = float(np.average(flat_sig[pix], weights=a))
         delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
+        r2, c2 = np.nonzero(ring & sub_joint)
+        ring_pix = (r2 + r_lo) * w + c_idx[c2]
+        local_de = (local_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a,
+                                            flat_a_rgb[ring_pix], flat_b_rgb[ring_pix],
+                                            flat_area[ring_pix]) if len(ring_pix) else delta_e)
+        log.info("changes: region at %s: ΔE %.2f, relative to its ring %.2f, expected false "
+                 "%.3g, diameter %.1f", np.round(centroid, 1).tolist(), delta_e, local_de,
+                 expected_false, math.sqrt(4 * area / math.pi))
         if delta_e < cfg.min_delta_e:
             dropped_faint += 1
             log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, not "
@@ -473,7 +505,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(lum_b[pix])) / lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,
-            delta_e=delta_e, expected_false=expected_false, mass=float(stats[1]) ** 2))
+            delta_e=delta_e, local_delta_e=local_de, expected_false=expected_false, mass=float(stats[1]) ** 2))
     regions.sort(key=lambda g: -g.score)
     # pieces of one change on both sides of a gap, each followed into the gap, can describe
     # the same wall: keep the higher-scoring one
