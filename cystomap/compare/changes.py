@@ -38,7 +38,7 @@ between sessions; regions centred within ``opening_deg`` of such a camera's dire
 dropped (lesions at the neck are therefore not reported when the entry was registered).
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
-``local_delta_e``; the JND by default). Photometric residue the illumination matching leaves
+``local_delta_e``). Photometric residue the illumination matching leaves
 (a gain or white balance varying smoothly over the wall) is significant by its size but
 shifts region and ring alike; a lesion changes the region only. (``min_delta_e``, a floor on
 the region's own mean colour change, moves with that residue and is off by default.)
@@ -89,9 +89,6 @@ log = logging.getLogger(__name__)
 # 95th set a small change's half-maximum too low (5 mm phantom lesions measured +20-25 %
 # wide at full size; +18-25 % with the 99th)
 PEAK_PERCENTILE = 99.0
-# the pair's null clusters set the ring-relative colour floor only when at least this many of
-# them (of at least min_diameter_mm) give a 90th percentile
-MIN_NULL_CLUSTERS = 10
 
 CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2",
                   "diameter_mm", "mean_difference", "score", "peak_significance",
@@ -194,34 +191,6 @@ def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nd
                       mean(b_ring, ring_weights)])
     lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
     return float(np.linalg.norm((lab[1] - lab[3]) - (lab[0] - lab[2])))
-
-
-def null_local_delta_e(null: Candidates, diff: Difference, ring_px: int,
-                       min_area: float) -> np.ndarray:
-    """``local_colour_difference`` of each of the pair's null clusters (candidate clusters not
-    flagged as changes) of at least ``min_area``: what the statistic reaches without change."""
-    from scipy import ndimage
-
-    grid = diff.grid
-    h, w = grid.shape
-    out = []
-    flat_area = grid.area
-    for i, sl in enumerate(ndimage.find_objects(null.labels)):
-        if sl is None or null.flagged[i]:
-            continue
-        r0, r1 = max(0, sl[0].start - ring_px - 1), min(h, sl[0].stop + ring_px + 1)
-        c0, c1 = max(0, sl[1].start - ring_px - 1), min(w, sl[1].stop + ring_px + 1)
-        m = null.labels[r0:r1, c0:c1] == i + 1
-        a = flat_area[r0:r1, c0:c1]
-        if float(a[m].sum()) < min_area:
-            continue
-        joint = diff.joint[r0:r1, c0:c1]
-        ring = _ring(m, ring_px) & ~m & joint
-        if ring.sum() < 8:
-            continue
-        ar, br = diff.a_rgb[r0:r1, c0:c1], diff.b_rgb[r0:r1, c0:c1]
-        out.append(local_colour_difference(ar[m], br[m], a[m], ar[ring], br[ring], a[ring]))
-    return np.array(out)
 
 
 def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
@@ -400,19 +369,6 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     jflat = diff.joint.ravel()
     lum_ref_a = max(float(np.median(lum_a[jflat])), 1e-6)
     lum_ref_b = max(float(np.median(lum_b[jflat])), 1e-6)
-    # the ring-relative colour change a region needs: the perceptual floor, or what the pair's
-    # noise clusters reach (their 90th percentile times local_null_factor), the larger
-    null_lde = null_local_delta_e(null, diff, ring_px, min_area)
-    local_floor = cfg.min_local_delta_e
-    if len(null_lde) >= MIN_NULL_CLUSTERS and cfg.local_null_factor > 0:
-        local_floor = max(local_floor, cfg.local_null_factor * float(np.percentile(null_lde, 90)))
-    info["null_local_delta_e"] = {
-        "n": len(null_lde), **({f"q{q:g}": float(np.percentile(null_lde, q)) for q in (50, 90, 99)}
-                               if len(null_lde) else {}), "floor": local_floor}
-    log.info("changes: the pair's %d null clusters' local ΔE: median %.2f, 90th percentile %.2f; "
-             "a change needs local ΔE >= %.2f", len(null_lde),
-             float(np.median(null_lde)) if len(null_lde) else float("nan"),
-             float(np.percentile(null_lde, 90)) if len(null_lde) else float("nan"), local_floor)
     order = np.argsort(lab.ravel(), kind="stable")
     sorted_lab = lab.ravel()[order]
     bounds = np.searchsorted(sorted_lab, np.arange(1, n + 2))
@@ -543,12 +499,12 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, not "
                      "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
             continue
-        if local_de < local_floor:
+        if local_de < cfg.min_local_delta_e:
             dropped_not_local += 1
             log.info("changes: region at %s dropped: relative to the wall around it its colour "
-                     "changed by ΔE %.1f < %.2f (its ring changed alike, or no more than the "
-                     "pair's noise clusters do)", np.round(centroid, 1).tolist(), local_de,
-                     local_floor)
+                     "changed by ΔE %.1f < %g (its ring changed alike: photometric residue, not "
+                     "a change of the patch)", np.round(centroid, 1).tolist(), local_de,
+                     cfg.min_local_delta_e)
             continue
         regions.append(Region(
             id=0, pixels=pix_all, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
