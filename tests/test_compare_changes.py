@@ -144,7 +144,7 @@ def _mottled_pair(sphere, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 RAW = {"min_diameter_mm": 0, "max_elongation": 0, "morphology_mm": 0, "merge_mm": 0,
-       "gap_fill_mm": 0, "extend_into_unseen": False, "min_enclosed": 0}
+       "gap_fill_mm": 0, "extend_into_unseen": False, "min_enclosed": 0, "min_local_delta_e": 0}
 
 
 @pytest.mark.slow  # 10 seeded no-change pairs through the whole detector (~70 s)
@@ -263,3 +263,47 @@ def test_flat_low_contrast_lesion_is_found_by_its_mass(sphere) -> None:
     assert g.delta_e < 12  # low contrast
     # not by its peak: that alone is within what the pair's noise reaches at the rate
     assert g.peak_significance < info["null_tails"]["peak"]["level_at_rate"]
+
+
+@pytest.mark.parametrize("diameter", [5.5, 29.0])
+def test_lesion_over_the_pole_is_one_region_measured_on_the_wall(sphere, diameter) -> None:
+    """A lesion centred over the atlas's pole (it covers every azimuth there): one region, its
+    diameter and centroid measured on the wall, not on the atlas's stretched rows."""
+    proj, rays, grid, _, up = sphere
+    centre = _on_sphere(math.radians(89.0), 0.3)
+    none = np.zeros(grid.shape, bool)
+    regions = _run((proj, rays, grid, centre, up), none, none, diameter=diameter)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    g = regions[0]
+    assert abs(g.diameter_mm - diameter) < 0.2 * diameter, g.diameter_mm
+    assert np.linalg.norm([g.x, g.y, g.z] - centre) < 0.5
+    assert g.local_delta_e > 10
+
+
+def test_smooth_photometric_residue_is_not_a_change_a_lesion_is(sphere) -> None:
+    """A smooth bump of colour change (Gaussian, σ 8 mm: white balance left varying over the
+    wall) is significant by its size and its mean colour changes by more than the old ΔE 4
+    floor, but it changes the wall around it alike: dropped by its ring-relative change
+    (local ΔE about 2.0), while a 10 mm lesion of lower contrast (ΔE about 5.3) stays (local
+    ΔE about 4.7-5)."""
+    grid = sphere[2]
+    pts = np.nan_to_num(grid.points)
+    rng = np.random.default_rng(5)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    bump_c, lesion_c = _on_sphere(0.2, 0.5), _on_sphere(-0.3, 2.0)
+    bump = np.exp(-np.sum((pts - bump_c) ** 2, -1) / (2 * 8.0 ** 2))[..., None]
+    b = b + 1.5 * bump * np.array([6.0, -4.0, -2.0])
+    disc = grid.hit & (np.linalg.norm(pts - lesion_c, axis=-1) < 5.0)
+    b[disc] = WALL + 0.2 * (LESION - WALL) + rng.normal(0, 2.0, (int(disc.sum()), 3))
+    every = _detect(sphere, a, b, grid.hit, grid.hit, min_local_delta_e=0)
+    assert len(every) == 2, [(r.diameter_mm, r.delta_e, r.local_delta_e) for r in every]
+    residue = min(every, key=lambda r: np.linalg.norm([r.x, r.y, r.z] - bump_c))
+    assert np.linalg.norm([residue.x, residue.y, residue.z] - bump_c) < 1.0
+    assert residue.delta_e > 4.0 and residue.local_delta_e < 2.5  # old floor: kept; new: not
+    regions = _detect(sphere, a, b, grid.hit, grid.hit)
+    assert len(regions) == 1, [(r.diameter_mm, r.delta_e, r.local_delta_e) for r in regions]
+    g = regions[0]
+    assert np.linalg.norm([g.x, g.y, g.z] - lesion_c) < 1.0
+    assert abs(g.diameter_mm - 10.0) < 0.1 * 10.0
+    assert g.local_delta_e > 4.0

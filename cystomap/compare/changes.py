@@ -36,6 +36,12 @@ bladder neck: the scope enters through it, so registered cameras at or beyond th
 to it, and the mesh closes it with a cap whose texture (the urethra seen through it) differs
 between sessions; regions centred within ``opening_deg`` of such a camera's direction are
 dropped (lesions at the neck are therefore not reported when the entry was registered).
+Last, the region must change its patch, not the wall around it: its mean colour relative to
+its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
+``local_delta_e``). Photometric residue the illumination matching leaves
+(a gain or white balance varying smoothly over the wall) is significant by its size but
+shifts region and ring alike; a lesion changes the region only. (``min_delta_e``, a floor on
+the region's own mean colour change, moves with that residue and is off by default.)
 
 Gaps and unseen wall: a scan leaves strips of wall unfilmed between its sweeps, and the
 compared wall stops where either session's coverage does. Pieces of one change on both sides
@@ -44,8 +50,8 @@ across the strip. Where a change runs into wall that B saw but A did not
 (``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
 from the surrounding wall's colour to the region's, up to twice the compared part's
 equivalent diameter further): the region is measured as B shows it, and ``observed_share``
-says how much of it was compared (``delta_e``, the CIE76 ΔE*ab between A's and B's mean
-colours over it, is reported, not tested: the null decides). Regions that end up describing
+says how much of it was compared (``delta_e`` and ``local_delta_e`` are measured on the
+compared part). Regions that end up describing
 the same wall (both pieces of a cut change followed into the gap) are reported once.
 
 Measurement: each region's outline is where its significance exceeds half of its own peak
@@ -89,7 +95,7 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "enclosed", "luminance_a", "luminance_b",
                   "point_distance_mm", "elongation", "observed_share", "delta_e",
-                  "expected_false", "mass")
+                  "local_delta_e", "expected_false", "mass")
 
 
 @dataclass
@@ -117,6 +123,7 @@ class Region:
     elongation: float = 1.0  # length / width on the wall (principal axes)
     observed_share: float = 1.0  # share of the area both sessions saw (rest: bridged gap)
     delta_e: float = 0.0  # CIE76 colour difference of the region's mean colours, A vs B
+    local_delta_e: float = 0.0  # the same of the region's colour relative to its ring's
     expected_false: float = 0.0  # expected number of null regions at least this strong
     mass: float = 0.0  # excess significance mass above the candidate level (noise units · mm²)
 
@@ -134,6 +141,7 @@ class Region:
                 "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
                 "observed_share": self.observed_share, "delta_e": self.delta_e,
+                "local_delta_e": self.local_delta_e,
                 "expected_false": self.expected_false, "mass": self.mass}
 
 
@@ -161,6 +169,28 @@ def mean_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nda
     means = np.stack([(a_rgb * w[:, None]).sum(0), (b_rgb * w[:, None]).sum(0)])
     lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
     return float(np.linalg.norm(lab[1] - lab[0]))
+
+
+def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.ndarray,
+                            a_ring: np.ndarray, b_ring: np.ndarray, ring_weights: np.ndarray,
+                            ) -> float:
+    """CIE76 ΔE*ab of the change of a region's mean colour relative to its ring's: the norm of
+    (Lab_B(region) − Lab_B(ring)) − (Lab_A(region) − Lab_A(ring)).
+
+    Photometric residue the illumination matching leaves (a smooth gain, a white balance
+    that differs over the wall) shifts the region and the wall around it alike and cancels;
+    a lesion changes its patch, not the wall around it.
+    """
+    import cv2
+
+    def mean(rgb: np.ndarray, w: np.ndarray) -> np.ndarray:
+        w = w / max(float(w.sum()), 1e-12)
+        return (rgb * w[:, None]).sum(0)
+
+    means = np.stack([mean(a_rgb, weights), mean(b_rgb, weights), mean(a_ring, ring_weights),
+                      mean(b_ring, ring_weights)])
+    lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
+    return float(np.linalg.norm((lab[1] - lab[3]) - (lab[0] - lab[2])))
 
 
 def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
@@ -324,6 +354,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     dropped_long = 0
     dropped_weak = 0
     dropped_faint = 0
+    dropped_not_local = 0
     dropped_duplicate = 0
     ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
     flat_sig = sig.ravel()
@@ -455,10 +486,25 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         col, row = proj_full.point_to_pixel(centroid[None])
         mean_sig = float(np.average(flat_sig[pix], weights=a))
         delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
+        r2, c2 = np.nonzero(ring & sub_joint)
+        ring_pix = (r2 + r_lo) * w + c_idx[c2]
+        local_de = (local_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a,
+                                            flat_a_rgb[ring_pix], flat_b_rgb[ring_pix],
+                                            flat_area[ring_pix]) if len(ring_pix) else delta_e)
+        log.debug("changes: region at %s: ΔE %.2f, relative to its ring %.2f, expected false "
+                 "%.3g, diameter %.1f", np.round(centroid, 1).tolist(), delta_e, local_de,
+                 expected_false, math.sqrt(4 * area / math.pi))
         if delta_e < cfg.min_delta_e:
             dropped_faint += 1
             log.info("changes: region at %s dropped: its mean colour changed by ΔE %.1f < %g, not "
                      "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
+            continue
+        if local_de < cfg.min_local_delta_e:
+            dropped_not_local += 1
+            log.info("changes: region at %s dropped: relative to the wall around it its colour "
+                     "changed by ΔE %.1f < %g (its ring changed alike: photometric residue, not "
+                     "a change of the patch)", np.round(centroid, 1).tolist(), local_de,
+                     cfg.min_local_delta_e)
             continue
         regions.append(Region(
             id=0, pixels=pix_all, x=float(centroid[0]), y=float(centroid[1]), z=float(centroid[2]),
@@ -473,7 +519,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(lum_b[pix])) / lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,
-            delta_e=delta_e, expected_false=expected_false, mass=float(stats[1]) ** 2))
+            delta_e=delta_e, local_delta_e=local_de, expected_false=expected_false, mass=float(stats[1]) ** 2))
     regions.sort(key=lambda g: -g.score)
     # pieces of one change on both sides of a gap, each followed into the gap, can describe
     # the same wall: keep the higher-scoring one
@@ -493,6 +539,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                 dropped_dark_in_a=dropped_dark, dropped_off_reconstruction=dropped_far,
                 dropped_near_neck=dropped_neck, dropped_elongated=dropped_long,
                 dropped_weak=dropped_weak, dropped_faint=dropped_faint,
+                dropped_not_local=dropped_not_local,
                 dropped_duplicate=dropped_duplicate,
                 min_area_mm2=min_area, regions=len(regions),
                 score_definition="largest ratio of the region's peak significance or excess mass "
@@ -501,10 +548,11 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                 "in the pair without any change (its null)")
     log.info("changes: %d candidate cluster(s) above %.2f (median %.2f + %g x MAD %.2f), "
              "%d above the pair's null at %g expected false region(s); %d region(s); dropped: "
-             "%d too small, %d weak after cleaning, %d faint, %d at the edge of the compared wall, %d off "
+             "%d too small, %d weak after cleaning, %d faint, %d changed alike with their ring, "
+             "%d at the edge of the compared wall, %d off "
              "the reconstruction, %d on an opening in A, %d photo-inconsistent, %d at the "
              "bladder neck, %d elongated", null.info["candidates"], null.level, null.info["median"],
              CANDIDATE_MADS, null.info["mad_sigma"], null.info["flagged"], cfg.false_alarm_rate,
-             len(regions), dropped_small, dropped_weak, dropped_faint, dropped_edge, dropped_far, dropped_dark,
-             dropped_inconsistent, dropped_neck, dropped_long)
+             len(regions), dropped_small, dropped_weak, dropped_faint, dropped_not_local,
+             dropped_edge, dropped_far, dropped_dark, dropped_inconsistent, dropped_neck, dropped_long)
     return regions, info

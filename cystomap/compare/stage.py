@@ -20,8 +20,9 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   ``enclosed`` (share of a ring around it compared), ``luminance_a``/``luminance_b``
   (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points),
   ``elongation`` (length / width), ``observed_share`` (share of the area both sessions
-  saw; below 1 when a strip of unseen wall through the region was bridged) and ``delta_e``
-  (CIE76 ΔE*ab between A's and B's mean colours over the region); then where it is in B's
+  saw; below 1 when a strip of unseen wall through the region was bridged), ``delta_e``
+  (CIE76 ΔE*ab between A's and B's mean colours over the region) and ``local_delta_e`` (the
+  same of the region's mean colour relative to its ring's); then where it is in B's
   anatomical frame (:mod:`cystomap.anatomy`, from B's atlas.json): ``region`` (standard
   bladder region), ``clock`` (o'clock seen from the neck, 12 = anterior) and
   ``distance_from_neck_mm`` (on the wall), ``straddles`` (the other regions its extent covers
