@@ -119,7 +119,7 @@ class CompareConfig:
     # local_delta_e), must be at least this. Smooth photometric residue the illumination
     # matching leaves (exposure, white balance varying over the wall), which the null passes by
     # its size, shifts region and ring alike and cancels; a lesion changes its patch only.
-    # Measured (notes/defloor.md; dev pairs 301, 306, 308, no-change 1300, the test pairs):
+    # Measured (dev pairs 301, 306, 308, no-change 1300, the test pairs):
     # false regions the null passed 0.3-2.6 (the largest a small texture artefact of the test
     # pair's session A), lesions 4.7-13 (their raw delta_e overlapped the residue's at 3.8-4.3).
     # 3.5: what an untrained observer notices (the JND is 2.3). 0 = no check
