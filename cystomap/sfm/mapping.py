@@ -71,6 +71,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.ba_global_points_ratio = cfg.ba_global_ratio
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
     o.ba_global_max_num_iterations = cfg.ba_global_max_iterations
+    o.ba_global_max_refinements = cfg.ba_global_refinements
     m = o.mapper
     m.num_threads = cfg.mapping_threads
     m.random_seed = cfg.seed
