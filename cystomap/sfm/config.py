@@ -125,6 +125,13 @@ class SfmConfig:
     # iterations of each local / global bundle adjustment (COLMAP: up to 100 / 50)
     ba_local_max_iterations: int = setting(25, ">= 1")
     ba_global_max_iterations: int = setting(50, ">= 1")
+    # rounds of retriangulation + global bundle adjustment each time the mapper adjusts globally
+    # (COLMAP's ba_global_max_refinements: 5); the final adjustment follows mapping anyway
+    ba_global_refinements: int = setting(1, ">= 1")
+    # global bundle adjustment after the other frames were registered to the keyframe model (when
+    # they grew it by ba_global_ratio): off = leave it to the final adjustment, which adjusts
+    # every frame and point again after densification
+    ba_global_after_registering: bool = False
     # observations with a reprojection error above this are dropped (px); mapping and final
     max_reproj_error_px: float = setting(4.0, "> 0")
     # after mapping: drop observations above this error (px) and re-adjust; 0 = skip

@@ -262,8 +262,13 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
             shared[i].update(seen - {i})
     window = cfg.densify_neighbors * stride
     n_corners = n_aligned = 0
-    tracks: list[list[tuple[int, np.ndarray]]] = []  # per new point: (image id, xy COLMAP)
-    for n, ref_id in enumerate(ids):
+    per_ref: dict[int, list[list[tuple[int, np.ndarray]]]] = {}  # new tracks by reference frame
+    # the frames of one residue class modulo the stride in turn: a frame's targets are the
+    # following frames of its class, so the frames cache holds one class's window (in plain
+    # video order two classes' windows alternate and overflow it: every frame was read ~8x);
+    # the tracks are then put back in video order, so the result is that of video order
+    for n in sorted(range(len(ids)), key=lambda k: (k % stride, k)):
+        ref_id = ids[n]
         targets = ids[n + stride:: stride][: cfg.densify_neighbors]
         if n % stride == 0:  # keyframes only: far frames are not cached, reading them is slow
             loops = [j for j, c in shared[ref_id].most_common()
@@ -323,7 +328,8 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
             for c, p in zip(sel[accept], opencv_to_colmap_xy(pos[accept]), strict=True):
                 found[c].append((tgt_id, p))
             n_aligned += int(accept.sum())
-        tracks.extend(t for t in found if len(t) >= cfg.densify_min_views)
+        per_ref[n] = [t for t in found if len(t) >= cfg.densify_min_views]
+    tracks = [t for n in sorted(per_ref) for t in per_ref[n]]  # per new point: (image id, xy)
 
     # triangulate (grouped by track length), keep tracks that reproject well, add them
     n_points = n_obs = 0

@@ -3,8 +3,10 @@ final filter-and-adjust pass."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,16 @@ class MappingResult:
     models: list[list[str]]  # registered names per model, largest first
     final_ba: dict[str, Any]
     others: list[Any] = field(default_factory=list)  # the other models (pieces), models[1:]
+
+
+@contextlib.contextmanager
+def _clock(times: dict[str, float], name: str) -> Iterator[None]:
+    """Adds the CPU seconds of the block to ``times[name]`` (this process, all threads)."""
+    c = time.process_time()
+    try:
+        yield
+    finally:
+        times[name] = times.get(name, 0.0) + time.process_time() - c
 
 
 def refine_intrinsics(cfg: SfmConfig, calibrated: bool) -> bool:
@@ -59,6 +71,7 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     o.ba_global_points_ratio = cfg.ba_global_ratio
     o.ba_local_max_num_iterations = cfg.ba_local_max_iterations
     o.ba_global_max_num_iterations = cfg.ba_global_max_iterations
+    o.ba_global_max_refinements = cfg.ba_global_refinements
     m = o.mapper
     m.num_threads = cfg.mapping_threads
     m.random_seed = cfg.seed
@@ -184,14 +197,15 @@ def reconstruct(
     if len(mapped) < len(key):
         log.info("mapping: %d weak frame(s) (blur) are registered after the others: %s",
                  len(key) - len(mapped), [names[i] for i in key if i not in mapped][:20])
+    cpu: dict[str, float] = {}
     attempt = _map_and_extend(database, color_dir, work_dir / "models", cfg, refine, names,
-                              mapped, key, guard)
+                              mapped, key, guard, cpu)
     if len(mapped) < len(key) and (attempt is None or attempt[1]):
         # sharp frames first did not give one model: the weak frames may be the only links
         # (blur everywhere); map them together with the others too, keep the larger model
         log.info("mapping: again with the weak frames mapped together with the others")
         plain = _map_and_extend(database, color_dir, work_dir / "models_all", cfg, refine,
-                                names, key, key, guard)
+                                names, key, key, guard, cpu)
         if plain is not None and (attempt is None
                                   or plain[0].num_reg_images() > attempt[0].num_reg_images()):
             attempt = plain
@@ -199,10 +213,12 @@ def reconstruct(
     if attempt is None:
         return None
     rec, others, added, joined = attempt
-    loops = (close_loops(rec, pipeline_options(cfg, refine, color_dir).get_triangulation())
-             if close_loops is not None else {})
+    with _clock(cpu, "loops"):
+        loops = (close_loops(rec, pipeline_options(cfg, refine, color_dir).get_triangulation())
+                 if close_loops is not None else {})
     if undistort is not None:
-        enhanced_dir, mask_path = undistort(rec)
+        with _clock(cpu, "undistort"):
+            enhanced_dir, mask_path = undistort(rec)
         masks_dir = None
         refine = False
     dense: dict[str, int] = {}
@@ -211,13 +227,17 @@ def reconstruct(
         if mask_path is not None and mask_path.is_file():
             mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
         stride = key[1] - key[0] if len(key) > 1 else 1
-        dense = densify(rec, enhanced_dir, mask, cfg, stride, masks_dir).to_dict()
-    final = final_adjustment(rec, cfg, refine)
+        with _clock(cpu, "densify"):
+            dense = densify(rec, enhanced_dir, mask, cfg, stride, masks_dir).to_dict()
+    with _clock(cpu, "final_ba"):
+        final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
     final["pieces_joined"] = joined
     final["weak_frames"] = sorted(names[i] for i in weak)
     final["densification"] = dense
     final["loops"] = loops
+    final["cpu_s"] = {k: round(v, 2) for k, v in cpu.items()}
+    log.info("mapping: CPU s per part %s", final["cpu_s"])
     main = sorted(rec.image(i).name for i in rec.reg_image_ids())
     # the other models without the frames the largest took over
     rest = [[n for n in sorted(r.image(i).name for i in r.reg_image_ids()) if n not in main]
@@ -230,21 +250,26 @@ def reconstruct(
 def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, refine: bool,
                     names: list[str], mapped: list[int], key: list[int],
                     guard: Callable[[Any], int] | None = None,
+                    cpu: dict[str, float] | None = None,
                     ) -> tuple[Any, list[Any], int, dict[str, Any]] | None:
     """Incremental mapping of ``mapped`` (indices into ``names``), then every other frame
     registered to the largest model (keyframes ``key`` among them with a local bundle
     adjustment each, as the mapper would: they extend the model rather than fill it in):
     (largest model, the other models it did not absorb, frames added); None when no model
     was started. With ``guard``, the other models are then joined where they can be
-    (:func:`cystomap.sfm.pieces.join`; its figures are the tuple's last item)."""
+    (:func:`cystomap.sfm.pieces.join`; its figures are the tuple's last item). CPU seconds
+    per part are added to ``cpu``."""
     import pycolmap
+
+    cpu = {} if cpu is None else cpu
 
     pycolmap.set_random_seed(cfg.seed)
     opts = pipeline_options(cfg, refine, color_dir)
     if len(mapped) < len(names):
         opts.image_names = [names[i] for i in mapped]
     out.mkdir(parents=True, exist_ok=True)
-    recs = pycolmap.incremental_mapping(database, color_dir, out, options=opts)
+    with _clock(cpu, "incremental"):
+        recs = pycolmap.incremental_mapping(database, color_dir, out, options=opts)
     recs = {k: r for k, r in recs.items() if r.num_reg_images() >= 2}
     if not recs:
         return None
@@ -255,9 +280,12 @@ def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, 
     added = 0
     before = rec.num_reg_images()
     if before < len(names):
-        added = register_rest(database, rec, names, opts, {names[i] for i in key})
-        if added > cfg.ba_global_ratio * before - before:  # as the mapper would have
-            adjust(rec, cfg, refine, cfg.ba_global_max_iterations)
+        with _clock(cpu, "register_rest"):
+            added = register_rest(database, rec, names, opts, {names[i] for i in key})
+        if (cfg.ba_global_after_registering
+                and added > cfg.ba_global_ratio * before - before):  # as the mapper would have
+            with _clock(cpu, "register_rest_ba"):
+                adjust(rec, cfg, refine, cfg.ba_global_max_iterations)
     registered = {rec.image(i).name for i in rec.reg_image_ids()}
     others = [r for r in ordered[1:]
               if not {r.image(i).name for i in r.reg_image_ids()} <= registered]
@@ -268,8 +296,9 @@ def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, 
     if guard is not None and others:
         from cystomap.sfm.pieces import join
 
-        rec, others, joined = join(database, rec, others, names, {names[i] for i in key}, opts,
-                                   cfg, refine, guard)
+        with _clock(cpu, "join"):
+            rec, others, joined = join(database, rec, others, names, {names[i] for i in key},
+                                       opts, cfg, refine, guard)
         registered = {rec.image(i).name for i in rec.reg_image_ids()}
         others = [r for r in others
                   if not {r.image(i).name for i in r.reg_image_ids()} <= registered]
