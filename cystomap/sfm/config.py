@@ -126,7 +126,10 @@ class SfmConfig:
     ba_local_max_iterations: int = setting(25, ">= 1")
     ba_global_max_iterations: int = setting(50, ">= 1")
     # rounds of retriangulation + global bundle adjustment each time the mapper adjusts globally
-    # (COLMAP's ba_global_max_refinements: 5); the final adjustment follows mapping anyway
+    # (COLMAP's ba_global_max_refinements: 5); the final adjustment follows mapping anyway.
+    # With both keys below at their defaults, 30 s recording (338 frames, 640x360): sfm 101 ->
+    # 88 CPU-s, RMSE 0.113 -> 0.123 mm; default phantom at 640x360: 44 -> 40 CPU-s, 0.53 -> 0.47
+    # mm (one run each, loaded machine)
     ba_global_refinements: int = setting(1, ">= 1")
     # global bundle adjustment after the other frames were registered to the keyframe model (when
     # they grew it by ba_global_ratio): off = leave it to the final adjustment, which adjusts
