@@ -163,12 +163,16 @@ def mean_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nda
     vessel, mottling) changes single pixels but hardly the patch's mean colour; a lesion
     changes the patch.
     """
+    lab = _mean_lab((a_rgb, weights), (b_rgb, weights))
+    return float(np.linalg.norm(lab[1] - lab[0]))
+
+
+def _mean_lab(*sets: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """CIE L*a*b* of the weighted mean colour (RGB 0..255) of each (pixels, weights) set."""
     import cv2
 
-    w = weights / max(float(weights.sum()), 1e-12)
-    means = np.stack([(a_rgb * w[:, None]).sum(0), (b_rgb * w[:, None]).sum(0)])
-    lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
-    return float(np.linalg.norm(lab[1] - lab[0]))
+    means = np.stack([(rgb * (w / max(float(w.sum()), 1e-12))[:, None]).sum(0) for rgb, w in sets])
+    return cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
 
 
 def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.ndarray,
@@ -181,15 +185,8 @@ def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nd
     that differs over the wall) shifts the region and the wall around it alike and cancels;
     a lesion changes its patch, not the wall around it.
     """
-    import cv2
-
-    def mean(rgb: np.ndarray, w: np.ndarray) -> np.ndarray:
-        w = w / max(float(w.sum()), 1e-12)
-        return (rgb * w[:, None]).sum(0)
-
-    means = np.stack([mean(a_rgb, weights), mean(b_rgb, weights), mean(a_ring, ring_weights),
-                      mean(b_ring, ring_weights)])
-    lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
+    lab = _mean_lab((a_rgb, weights), (b_rgb, weights), (a_ring, ring_weights),
+                    (b_ring, ring_weights))
     return float(np.linalg.norm((lab[1] - lab[3]) - (lab[0] - lab[2])))
 
 
@@ -423,6 +420,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         if enclosed < cfg.min_enclosed:
             dropped_edge += 1
             continue
+        r2, c2 = np.nonzero(ring & sub_joint)
+        ring_pix = (r2 + r_lo) * w + c_idx[c2]  # the compared ring (flat grid indices)
         rr, cc = np.nonzero(outline)
         pix_all = (rr + r_lo) * w + c_idx[cc]
         rr, cc = np.nonzero(seen_outline)
@@ -443,8 +442,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
             continue
         consistency: dict[str, Any] = {}
         if verify is not None:
-            r2, c2 = np.nonzero(ring & sub_joint)
-            consistency = verify(pix, (r2 + r_lo) * w + c_idx[c2])
+            consistency = verify(pix, ring_pix)
             value = consistency.get("inconsistency")
             if value is not None and value > cfg.max_inconsistency:
                 dropped_inconsistent += 1
@@ -486,8 +484,6 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         col, row = proj_full.point_to_pixel(centroid[None])
         mean_sig = float(np.average(flat_sig[pix], weights=a))
         delta_e = mean_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a)
-        r2, c2 = np.nonzero(ring & sub_joint)
-        ring_pix = (r2 + r_lo) * w + c_idx[c2]
         local_de = (local_colour_difference(flat_a_rgb[pix], flat_b_rgb[pix], a,
                                             flat_a_rgb[ring_pix], flat_b_rgb[ring_pix],
                                             flat_area[ring_pix]) if len(ring_pix) else delta_e)
