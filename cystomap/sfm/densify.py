@@ -44,10 +44,13 @@ class DensifyStats:
     aligned: int  # corner-to-frame alignments accepted
     points: int  # new 3D points
     observations: int  # their observations
+    frames: int = 0  # registered frames
+    frames_read: int = 0  # full-size images read from disk (the cache holds a few at a time)
 
     def to_dict(self) -> dict[str, int]:
         return {"corners": self.corners, "aligned": self.aligned, "points": self.points,
-                "observations": self.observations}
+                "observations": self.observations, "frames": self.frames,
+                "frames_read": self.frames_read}
 
 
 class _Frames:
@@ -57,6 +60,7 @@ class _Frames:
         self.image_dir = image_dir
         self.capacity = capacity
         self._cache: OrderedDict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+        self.reads = 0
 
     def get(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if name in self._cache:
@@ -65,6 +69,7 @@ class _Frames:
         img = cv2.imread(str(self.image_dir / name), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise InputError(f"{self.image_dir / name}: cannot read image")
+        self.reads += 1
         img = img.astype(np.float32)
         ix = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
         iy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
@@ -355,7 +360,8 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
             rec.add_point3D(point, track)
             n_points += 1
             n_obs += length
-    stats = DensifyStats(n_corners, n_aligned, n_points, n_obs)
+    stats = DensifyStats(n_corners, n_aligned, n_points, n_obs, len(ids), frames.reads)
     log.info("densification: %d corners at full size, %d alignments, %d points with %d "
-             "observations added", n_corners, n_aligned, n_points, n_obs)
+             "observations added; %d reads of %d frames", n_corners, n_aligned, n_points, n_obs,
+             frames.reads, len(ids))
     return stats
