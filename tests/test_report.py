@@ -480,3 +480,14 @@ def test_sfm_self_check_in_words():
                                    "weakest_seam_share": 1.0, "seams_weak": [],
                                    "consistent": False, "halves": halves})
     assert "6 consecutive frames elsewhere (drift)" in text and "3.2 frame steps" in text and weak
+    # loop rotations: drift named with its place and size (cystomap/sfm/rotation.py)
+    rot = {"checked": True, "flagged": True, "pairs_tested": 55, "worst_deg": 3.45,
+           "worst_frames": [["f000002.png", "f000007.png"], ["f000065.png", "f000068.png"]]}
+    text, weak = consistency_text({"loop_pairs": 58, "loop_pairs_agreeing": 58,
+                                   "weakest_seam_share": 1.0, "seams_weak": [],
+                                   "consistent": False, "rotation": rot})
+    assert "f000002.png..f000007.png against f000065.png..f000068.png by 3.5°" in text and weak
+    text, weak = consistency_text({"loop_pairs": 58, "loop_pairs_agreeing": 58,
+                                   "weakest_seam_share": 1.0, "seams_weak": [], "consistent": True,
+                                   "rotation": {**rot, "flagged": False}})
+    assert "55 loop pairs with parallax show no rotation drift" in text and not weak

@@ -141,6 +141,15 @@ def consistency_text(c: dict[str, Any]) -> tuple[str, bool]:
             "agree with it" if halves.get("consistent", True) else
             f"place {halves.get('longest_off_run')} consecutive frames elsewhere (drift)")
             + (f" (at most {worst:.1f} frame steps apart)" if worst is not None else ""))
+    rot = c.get("rotation") if isinstance(c.get("rotation"), dict) else {}
+    if rot.get("checked"):
+        worst = _num(rot.get("worst_deg"))
+        where = rot.get("worst_frames") or [["?", "?"], ["?", "?"]]
+        parts.append(
+            f"the rotations of {rot.get('pairs_tested')} loop pairs with parallax "
+            + (f"say the model has turned frames {where[0][0]}..{where[0][1]} against "
+               f"{where[1][0]}..{where[1][1]} by {worst:.1f}° (rotation drift)"
+               if rot.get("flagged") and worst is not None else "show no rotation drift"))
     weak = bool(loops and agree is not None and agree < 0.5 * loops) or bool(c.get("seams_weak"))
     return "; ".join(parts) or "not checked", weak or c.get("consistent") is False
 

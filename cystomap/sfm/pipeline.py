@@ -27,7 +27,17 @@ from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.io.ply import write_ply
 from cystomap.outputs import atomic_dir, software_versions, write_json
-from cystomap.sfm import consistency, drift, intrinsics, mapping, matching, pairs, quality, scale
+from cystomap.sfm import (
+    consistency,
+    drift,
+    intrinsics,
+    mapping,
+    matching,
+    pairs,
+    quality,
+    rotation,
+    scale,
+)
 from cystomap.sfm import features as feat
 from cystomap.sfm.config import SfmConfig
 
@@ -271,6 +281,10 @@ def run_sfm(
                 check["halves"] = drift.halves_check(database, color_dir, work / "halves", rec,
                                                      names, key, cfg, refine)
             _judge_halves(check, cfg, failed, names, result, pair_stats)
+        if cfg.rotation_check != "off":
+            with timer.step("loops"):
+                check["rotation"] = rotation.rotation_check(rec, names, geoms, tried, cfg)
+            _judge_rotation(check, cfg, failed, names, result, pair_stats)
         mapping.as_pinhole(rec)
         if undistort is not None:
             color_dir = undistort.color_dir
@@ -343,6 +357,27 @@ def _judge_halves(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: li
         _write_failed(failed, message, names, result, pair_stats)
         raise StageError(f"{message}; details in {failed}")
     log.warning("%s (flagged in quality.json consistency; sfm.halves_check: fail would fail "
+                "the stage)", message)
+
+
+def _judge_rotation(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: list[str],
+                    result: mapping.MappingResult, pair_stats: dict[str, int]) -> None:
+    """Flag (warn) or fail (``rotation_check: fail``) a model the loop pairs' rotations say has
+    turned one place of the video against another (cystomap/sfm/rotation.py)."""
+    r = check["rotation"]
+    if not r.get("flagged"):
+        return
+    (a0, a1), (b0, b1) = r["worst_frames"]
+    reason = (f"rotation drift: {r['worst_pairs']} loop pairs linking {a0}..{a1} to {b0}..{b1} "
+              f"measure the model {r['worst_deg']:.1f}° off between them (the loop pairs' "
+              f"rotations agree with their neighbours' beyond noise, p {r['p_value']:.3f})")
+    check["consistent"] = False
+    check["reason"] = f"{check['reason']}; {reason}" if check.get("reason") else reason
+    message = f"sfm self-check: {reason}; its poses there are not reliable"
+    if cfg.rotation_check == "fail":
+        _write_failed(failed, message, names, result, pair_stats)
+        raise StageError(f"{message}; details in {failed}")
+    log.warning("%s (flagged in quality.json consistency; sfm.rotation_check: fail would fail "
                 "the stage)", message)
 
 
