@@ -13,7 +13,11 @@ model's own step between consecutive frames (the median distance between consecu
 centres, so no threshold in model units), the frame is *off*: the two maps do not even agree on
 which neighbour a frame is nearest to. A correct model agrees with both halves to a small share
 of a step; the check fails when :data:`MIN_OFF_RUN` consecutive frames of the model are off
-(so in both halves: they alternate), where one half alone can be wrong by its own fault.
+(so in both halves: they alternate), where one half alone can be wrong by its own fault. A
+frame neither half placed ends a run: otherwise one half's error on both sides of the other
+half's gap makes a run of its own (seen on a clean 640x360 phantom session at 0.15 mm: the
+even half 2-3 steps off at frames 92-96, where the odd half had lost 93 and 95, and the odd
+half 4-6 steps off from 97 on, the even half agreeing there).
 Frames that neither half could place (a stretch held only by pairs too weak for a map of half
 the frames) are counted as unconfirmed: reported, not failed.
 """
@@ -97,7 +101,7 @@ def compare(model: dict[str, np.ndarray], order: list[str],
                 start = n
             if run > longest:
                 longest, first = run, start
-        elif n in residual:
+        else:  # agrees, or neither half placed it: a run needs evidence at every frame
             run = 0
     # consecutive frames of the model that neither half placed: not confirmed (not wrong)
     gap = unplaced = 0
