@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,36 +38,73 @@ CENSOR_SHARE = 0.4
 # null, but at a high rate, taking out what the null itself predicts would thin its tail
 # round after round
 PEEL_EXPECTED = 0.1
+# the share of the null clusters at least as strong as a cluster that would be reported is
+# estimated on at least this many of the strongest (as many as a tail is fitted to at least)
+SHARE_MIN = TAIL_MIN
 
 
 @dataclass
 class NullTail:
-    """Expected number of the pair's null (no-change) clusters at least as strong as a value.
+    """Expected number of the pair's null (no-change) clusters at least as strong as a value
+    that would be reported.
 
     Below ``v`` the count of null clusters is used as is; above it, ``k`` null clusters'
-    excesses follow an exponential tail of scale ``sigma``.
+    excesses follow an exponential tail of scale ``sigma``. That count is multiplied by the
+    share of null clusters at least as strong that pass the checks a region must pass to be
+    reported (``reportable``, in the order of ``stats``; see :func:`reportable_share`).
     """
 
     stats: np.ndarray  # sorted strengths of the null clusters (ascending)
     v: float
     k: int
     sigma: float
+    reportable: np.ndarray | None = None  # (len(stats),) bool, None: every cluster counts
 
-    def expected(self, t: np.ndarray | float) -> np.ndarray:
+    def count(self, t: np.ndarray | float) -> np.ndarray:
+        """Expected number of null clusters at least as strong as ``t``, reportable or not."""
         t = np.asarray(t, np.float64)
         n_above = len(self.stats) - np.searchsorted(self.stats, t, side="left")
         tail = self.k * np.exp(-np.maximum(t - self.v, 0.0) / self.sigma)
         return np.where(t > self.v, tail, n_above.astype(np.float64))
 
-    def level(self, rate: float) -> float:
-        """The strength at which ``rate`` null clusters are expected (at or above)."""
+    def share(self, t: np.ndarray | float) -> np.ndarray:
+        """The reportable share of the null clusters at least as strong as ``t``."""
+        t = np.asarray(t, np.float64)
+        if self.reportable is None:
+            return np.ones_like(t)
+        return reportable_share(self.stats, self.reportable, t)
+
+    def expected(self, t: np.ndarray | float) -> np.ndarray:
+        return self.count(t) * self.share(t)
+
+    def level(self, rate: float, reported: bool = True) -> float:
+        """The strength beyond the null clusters at which ``rate`` of them are expected (at or
+        above): of those that would be reported, or (``reported`` False) of all."""
         if self.k <= 0:
             return float(self.stats[-1]) if len(self.stats) else 0.0
-        return self.v - self.sigma * math.log(min(rate / self.k, 1.0))
+        q = float(self.share(np.inf)) if reported else 1.0
+        return self.v - self.sigma * math.log(min(rate / (self.k * max(q, 1e-12)), 1.0))
 
 
-def _fit_tail(null: np.ndarray) -> NullTail:
-    """Generalised Pareto tail of the sorted (ascending) null sample ``null``."""
+def reportable_share(stats: np.ndarray, reportable: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Share of the null clusters (``stats`` ascending, ``reportable`` in that order) at least
+    as strong as ``t`` that are reportable, on at least the ``SHARE_MIN`` strongest
+    (beyond them: the share among them), with half a cluster added to the reportable ones
+    and one to all (Jeffreys' estimate of a binomial share: a share of none is not 0, it is
+    below about one in twice the clusters seen)."""
+    n = len(stats)
+    start = np.searchsorted(stats, t, side="left")
+    start = np.minimum(start, max(n - SHARE_MIN, 0))
+    after = np.concatenate([np.cumsum(reportable[::-1])[::-1], [0]])
+    return (after[start] + 0.5) / (n - start + 1.0)
+
+
+def _fit_tail(null: np.ndarray, reportable: np.ndarray | None = None) -> NullTail:
+    """Generalised Pareto tail of the null sample ``null`` (with each cluster's
+    ``reportable``), sorted by strength."""
+    order = np.argsort(null, kind="stable")
+    null = np.asarray(null, np.float64)[order]
+    rep = None if reportable is None else np.asarray(reportable, bool)[order]
     n = len(null)
     k = min(n, max(TAIL_MIN, round(TAIL_SHARE * n)))
     v = float(null[n - k - 1]) if k < n else 0.0
@@ -76,10 +114,11 @@ def _fit_tail(null: np.ndarray) -> NullTail:
     # (the censored ones counted at the censoring point) over the uncensored count
     c = float(excess[k - n_cens - 1]) if n_cens else 0.0
     sigma = (float(excess[:k - n_cens].sum()) + n_cens * c) / max(k - n_cens, 1)
-    return NullTail(null, v, k, max(sigma, 1e-12))
+    return NullTail(null, v, k, max(sigma, 1e-12), rep)
 
 
 def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
+             reportable: np.ndarray | None = None,
              ) -> tuple[list[NullTail], np.ndarray, np.ndarray]:
     """The null tails of the clusters' statistics ``stats`` (n, m) and the clusters above.
 
@@ -100,12 +139,14 @@ def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
     tails: list[NullTail] = []
     expected = np.full(n_all, np.inf)
     for _ in range(iterations):
-        if int((~flagged).sum()) < 3:  # no null to speak of: nothing is unlikely under it
+        null = ~flagged
+        if int(null.sum()) < 3:  # no null to speak of: nothing is unlikely under it
             log.warning("changes: only %d candidate cluster(s) of noise: no null fitted, no "
-                        "change reported", int((~flagged).sum()))
+                        "change reported", int(null.sum()))
             empty = NullTail(np.zeros(0), 0.0, 0, 1.0)
             return [empty] * m, np.full(n_all, np.inf), np.zeros(n_all, bool)
-        tails = [_fit_tail(np.sort(stats[~flagged, j])) for j in range(m)]
+        tails = [_fit_tail(stats[null, j], None if reportable is None else reportable[null])
+                 for j in range(m)]
         expected = m * np.min([t.expected(stats[:, j]) for j, t in enumerate(tails)], axis=0)
         new = expected <= peel
         if np.array_equal(new, flagged):
@@ -125,6 +166,7 @@ class Candidates:
     expected: np.ndarray  # (n,) expected number of null clusters at least as strong
     flagged: np.ndarray  # (n,) bool: expected null count at most the false-alarm rate
     info: dict[str, Any]
+    reportable: np.ndarray | None = None  # (n,) bool: would pass the checks as it is
 
     def statistics(self, sig: np.ndarray, area: np.ndarray) -> np.ndarray:
         """Peak and root of the excess mass of a set of pixels (their significance and wall
@@ -145,7 +187,9 @@ class Candidates:
                    for t, x in zip(self.tails, stats, strict=True))
 
 
-def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float) -> Candidates:
+def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
+               reportable: Callable[[np.ndarray, int], np.ndarray] | None = None,
+               ) -> Candidates:
     """Candidate clusters of the significance, scored against the pair's own null.
 
     Two statistics per cluster: its peak significance (a strong change, however small) and
@@ -164,15 +208,18 @@ def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float
     peak = np.zeros(n + 1)
     np.maximum.at(peak, flat, sig.ravel())
     stats = np.stack([peak[1:], np.sqrt(mass)], axis=1)
-    tails, expected, flagged = fit_null(stats, rate)
+    rep = np.ones(n, bool) if reportable is None else np.asarray(reportable(lab, n), bool)
+    tails, expected, flagged = fit_null(stats, rate, reportable=rep)
     info: dict[str, Any] = {
         "median": med, "mad_sigma": mad, "candidate_level": level, "candidates": n,
-        "flagged": int(flagged.sum()), "false_alarm_rate": rate,
+        "reportable": int(rep.sum()), "flagged": int(flagged.sum()), "false_alarm_rate": rate,
         "null_clusters": len(tails[0].stats),
         "null_tails": {name: {"from": t.v, "clusters": t.k, "scale": t.sigma,
-                              "level_at_rate": t.level(rate / len(tails))}
+                              "level_at_rate": t.level(rate / len(tails)),
+                              "level_at_rate_any": t.level(rate / len(tails), reported=False),
+                              "reportable_share": float(t.share(np.inf))}
                        for name, t in zip(("peak", "root_mass"), tails, strict=True)}}
-    return Candidates(lab, level, stats, tails, expected, flagged, info)
+    return Candidates(lab, level, stats, tails, expected, flagged, info, rep)
 
 
 def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
@@ -252,7 +299,9 @@ def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: 
         members: dict[int, np.ndarray] = {
             i: idx[bounds[i]:bounds[i + 1]] for i in range(1, n_markers + 1)}
         sflat, aflat = s.ravel(), a.ravel()
-        ridge_level = null.tails[0].level(rate / len(null.tails)) if null.tails else math.inf
+        # what the pair's noise clusters reach in height at the rate, reportable or not
+        ridge_level = (null.tails[0].level(rate / len(null.tails), reported=False)
+                       if null.tails else math.inf)
 
         def separate(pix: np.ndarray, saddle: float) -> bool:
             v = sflat[pix]
