@@ -307,3 +307,29 @@ def test_smooth_photometric_residue_is_not_a_change_a_lesion_is(sphere) -> None:
     assert np.linalg.norm([g.x, g.y, g.z] - lesion_c) < 1.0
     assert abs(g.diameter_mm - 10.0) < 0.1 * 10.0
     assert g.local_delta_e > 4.0
+
+
+def test_null_counts_only_the_noise_clusters_that_would_be_reported() -> None:
+    """The null's expected_false of a cluster counts the pair's noise clusters at least as
+    strong that would pass the checks: a reportable cluster among strong noise clusters that
+    would not be reported (a continuum beyond the body of 300 noise clusters, as the pale
+    walls' small colour residue) is a change; without the reportable flags it is not (the
+    old null: expected 0.15 > 0.1), and the noise clusters are not flagged by it (only the
+    strongest, by the count of all clusters as before, for the checks to drop)."""
+    from cystomap.compare.null import fit_null
+
+    g = np.random.default_rng(0)
+    n, ne = 300, 8
+    peak = np.r_[3 + g.exponential(3.0, n), np.linspace(20, 32, ne), [30.0]]
+    mass = np.r_[1 + g.exponential(4.0, n), np.linspace(26, 40, ne), [38.0]]
+    stats = np.c_[peak, mass]
+    reportable = np.r_[np.zeros(n + ne, bool), [True]]
+    _, e_all, f_all = fit_null(stats, 0.1)
+    _, e_rep, f_rep = fit_null(stats, 0.1, reportable=reportable)
+    assert not f_all[-1] and e_all[-1] > 0.1
+    assert f_rep[-1] and e_rep[-1] < 0.6 * e_all[-1]
+    assert f_rep[:-1].sum() == f_all[:-1].sum() <= 1
+    # among noise that would all be reported it stays no change (Jeffreys' share of the
+    # three as strong: 3.5 / 4)
+    _, e_same, f_same = fit_null(stats, 0.1, reportable=np.ones(n + ne + 1, bool))
+    assert not f_same[-1] and e_same[-1] >= 0.8 * e_all[-1]

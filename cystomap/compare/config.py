@@ -104,9 +104,11 @@ class CompareConfig:
     # wall) are scored by their peak and by the root of their excess mass on the wall; most
     # are noise, and exponential tails fitted to the strongest of them (the strongest 10 %
     # counted only by their number, the changes taken out, iteratively) give each cluster the
-    # expected number of noise clusters at least as strong; clusters at or below this rate
-    # are changes. A cluster holding several changes is split at the saddles of the
-    # significance where each side is a change above the saddle and the saddle is not
+    # expected number of noise clusters at least as strong that would be reported (times
+    # the share of them that pass the checks below when measured as they are,
+    # photo-consistency aside); clusters at or below this rate are changes. A cluster
+    # holding several changes is split at the saddles of the significance where each side
+    # is a change above the saddle and the saddle is not
     # (changes.csv: expected_false). 0.1 = one false region in ten pairs
     false_alarm_rate: float = setting(0.1, "(0, 100]")
     # the smallest change reported: regions smaller than a disc of this diameter (model

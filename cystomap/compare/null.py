@@ -1,13 +1,16 @@
 """The pair's own null for the compare decision: candidate clusters of the significance, the
 exponential tails of their peak and excess-mass statistics fitted to the pair's noise
-clusters, each cluster's expected number of false look-alikes, and clusters cut at the
-saddles of their significance (see :mod:`cystomap.compare.changes` for the whole decision).
+clusters, the share of those that would be reported (they pass the checks a region must
+pass), each cluster's expected number of reportable false look-alikes, and clusters cut at
+the saddles of their significance (see :mod:`cystomap.compare.changes` for the whole
+decision).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,45 +44,94 @@ PEEL_EXPECTED = 0.1
 
 @dataclass
 class NullTail:
-    """Expected number of the pair's null (no-change) clusters at least as strong as a value.
+    """Expected number of the pair's null (no-change) clusters at least as strong as a value:
+    of all of them (:meth:`count`), and of those that would be reported (:meth:`expected`).
 
     Below ``v`` the count of null clusters is used as is; above it, ``k`` null clusters'
-    excesses follow an exponential tail of scale ``sigma``.
+    excesses follow an exponential tail of scale ``sigma``. The count of reportable ones
+    (those that pass the checks a region must pass to be reported, ``reportable`` in the
+    order of ``stats``) is that count times their share among the null clusters at least as
+    strong (:func:`reportable_share`).
     """
 
     stats: np.ndarray  # sorted strengths of the null clusters (ascending)
     v: float
     k: int
     sigma: float
+    reportable: np.ndarray | None = None  # (len(stats),) bool, None: every cluster counts
 
-    def expected(self, t: np.ndarray | float) -> np.ndarray:
+    def count(self, t: np.ndarray | float) -> np.ndarray:
+        """Expected number of null clusters at least as strong as ``t``, reportable or not."""
         t = np.asarray(t, np.float64)
         n_above = len(self.stats) - np.searchsorted(self.stats, t, side="left")
         tail = self.k * np.exp(-np.maximum(t - self.v, 0.0) / self.sigma)
         return np.where(t > self.v, tail, n_above.astype(np.float64))
 
-    def level(self, rate: float) -> float:
-        """The strength at which ``rate`` null clusters are expected (at or above)."""
+    def share(self, t: np.ndarray | float) -> np.ndarray:
+        """The reportable share of the null clusters at least as strong as ``t`` (see
+        :func:`reportable_share`)."""
+        t = np.asarray(t, np.float64)
+        if self.reportable is None:
+            return np.ones_like(t)
+        return reportable_share(self.stats, self.reportable, t)
+
+    def expected(self, t: np.ndarray | float) -> np.ndarray:
+        """Expected number of null clusters at least as strong as ``t`` that would be
+        reported: their count times their reportable share."""
+        return self.count(t) * self.share(t)
+
+    def level(self, rate: float, reported: bool = True) -> float:
+        """The strength beyond the null clusters at which ``rate`` of them are expected (at or
+        above): of those that would be reported, or (``reported`` False) of all."""
         if self.k <= 0:
             return float(self.stats[-1]) if len(self.stats) else 0.0
-        return self.v - self.sigma * math.log(min(rate / self.k, 1.0))
+        q = float(self.share(np.inf)) if reported else 1.0
+        return self.v - self.sigma * math.log(min(rate / (self.k * q), 1.0))
 
 
-def _fit_tail(null: np.ndarray) -> NullTail:
-    """Generalised Pareto tail of the sorted (ascending) null sample ``null``."""
+def reportable_share(stats: np.ndarray, reportable: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Share of the null clusters (``stats`` ascending, ``reportable`` in that order) at least
+    as strong as ``t`` that are reportable, as Jeffreys' estimate of a binomial share (half a
+    cluster more of one more: none of n is about one in 2n + 2, and beyond the strongest null
+    cluster, where nothing was seen, one half).
+
+    Local, not pooled over the tail: reportable noise is not spread evenly over strength (on
+    a mottled wall, or a pale one with colour residue, the strongest noise clusters are the
+    patches that would be reported), and a pooled share would thin the strongest ones'
+    count by the weak ones' share."""
+    n = len(stats)
+    start = np.searchsorted(stats, t, side="left")
+    after = np.concatenate([np.cumsum(reportable[::-1])[::-1], [0]])
+    return (after[start] + 0.5) / (n - start + 1.0)
+
+
+def _censored_scale(excess: np.ndarray) -> tuple[float, int]:
+    """Total excess (the strongest CENSOR_SHARE counted at the censoring point) and the
+    uncensored count of a sorted (ascending) sample of exponential excesses."""
+    k = len(excess)
+    n_cens = int(CENSOR_SHARE * k)
+    c = float(excess[k - n_cens - 1]) if n_cens and k > n_cens else 0.0
+    return float(excess[:k - n_cens].sum()) + n_cens * c, k - n_cens
+
+
+def _fit_tail(null: np.ndarray, reportable: np.ndarray | None = None) -> NullTail:
+    """Exponential tail of the null sample ``null`` (peaks over threshold; each cluster's
+    ``reportable`` kept in its order): the strongest ``TAIL_SHARE`` (at least ``TAIL_MIN``),
+    their scale the maximum likelihood with the strongest ``CENSOR_SHARE`` right-censored."""
+    order = np.argsort(null, kind="stable")
+    null = np.asarray(null, np.float64)[order]
+    rep = None if reportable is None else np.asarray(reportable, bool)[order]
     n = len(null)
     k = min(n, max(TAIL_MIN, round(TAIL_SHARE * n)))
     v = float(null[n - k - 1]) if k < n else 0.0
     excess = np.maximum(null[n - k:] - v, 0.0)
-    n_cens = int(CENSOR_SHARE * k)
-    # maximum likelihood of an exponential with right-censored values: the total excess
-    # (the censored ones counted at the censoring point) over the uncensored count
-    c = float(excess[k - n_cens - 1]) if n_cens else 0.0
-    sigma = (float(excess[:k - n_cens].sum()) + n_cens * c) / max(k - n_cens, 1)
-    return NullTail(null, v, k, max(sigma, 1e-12))
+    total, m = _censored_scale(excess)
+    sigma = max(total / max(m, 1), 1e-12)
+    return NullTail(null, v, k, sigma, rep)
 
 
 def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
+             reportable: np.ndarray | None = None,
              ) -> tuple[list[NullTail], np.ndarray, np.ndarray]:
     """The null tails of the clusters' statistics ``stats`` (n, m) and the clusters above.
 
@@ -95,23 +147,33 @@ def fit_null(stats: np.ndarray, rate: float, iterations: int = 10,
     """
     stats = np.asarray(stats, np.float64).reshape(len(stats), -1)
     n_all, m = stats.shape
+    rep = np.ones(n_all, bool) if reportable is None else np.asarray(reportable, bool)
     peel = min(rate, PEEL_EXPECTED)
     flagged = np.zeros(n_all, bool)
     tails: list[NullTail] = []
     expected = np.full(n_all, np.inf)
     for _ in range(iterations):
-        if int((~flagged).sum()) < 3:  # no null to speak of: nothing is unlikely under it
+        null = ~flagged
+        if int(null.sum()) < 3:  # no null to speak of: nothing is unlikely under it
             log.warning("changes: only %d candidate cluster(s) of noise: no null fitted, no "
-                        "change reported", int((~flagged).sum()))
+                        "change reported", int(null.sum()))
             empty = NullTail(np.zeros(0), 0.0, 0, 1.0)
             return [empty] * m, np.full(n_all, np.inf), np.zeros(n_all, bool)
-        tails = [_fit_tail(np.sort(stats[~flagged, j])) for j in range(m)]
+        tails = [_fit_tail(stats[null, j], None if reportable is None else reportable[null])
+                 for j in range(m)]
         expected = m * np.min([t.expected(stats[:, j]) for j, t in enumerate(tails)], axis=0)
-        new = expected <= peel
+        # a cluster that would not be reported as it is may still be one change with others
+        # (pieces joined) or be one after cleaning: it is a candidate change by the count of
+        # all null clusters at least as strong, as if every one of them were reported
+        count = m * np.min([t.count(stats[:, j]) for j, t in enumerate(tails)], axis=0)
+        decision = np.where(rep, expected, count)
+        # taken out of the null only when unlikely among all its clusters: among the
+        # reportable ones alone the strongest reportable noise would take itself out
+        new = count <= peel
         if np.array_equal(new, flagged):
             break
         flagged = new
-    return tails, expected, expected <= rate
+    return tails, expected, decision <= rate
 
 
 @dataclass
@@ -125,6 +187,7 @@ class Candidates:
     expected: np.ndarray  # (n,) expected number of null clusters at least as strong
     flagged: np.ndarray  # (n,) bool: expected null count at most the false-alarm rate
     info: dict[str, Any]
+    reportable: np.ndarray | None = None  # (n,) bool: would pass the checks as it is
 
     def statistics(self, sig: np.ndarray, area: np.ndarray) -> np.ndarray:
         """Peak and root of the excess mass of a set of pixels (their significance and wall
@@ -132,9 +195,10 @@ class Candidates:
         return np.array([float(sig.max()) if len(sig) else 0.0,
                          math.sqrt(float((np.maximum(sig - self.level, 0.0) * area).sum()))])
 
-    def expected_false(self, stats: np.ndarray) -> float:
-        """Expected number of the pair's null clusters at least as strong as ``stats``."""
-        return float(len(self.tails) * min(float(t.expected(x))
+    def expected_false(self, stats: np.ndarray, reported: bool = True) -> float:
+        """Expected number of the pair's null clusters at least as strong as ``stats`` that
+        would be reported (``reported`` False: reported or not)."""
+        return float(len(self.tails) * min(float(t.expected(x) if reported else t.count(x))
                                            for t, x in zip(self.tails, stats, strict=True)))
 
     def score(self, stats: np.ndarray, rate: float) -> float:
@@ -145,7 +209,9 @@ class Candidates:
                    for t, x in zip(self.tails, stats, strict=True))
 
 
-def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float) -> Candidates:
+def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
+               reportable: Callable[[np.ndarray, int], np.ndarray] | None = None,
+               ) -> Candidates:
     """Candidate clusters of the significance, scored against the pair's own null.
 
     Two statistics per cluster: its peak significance (a strong change, however small) and
@@ -164,15 +230,18 @@ def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float
     peak = np.zeros(n + 1)
     np.maximum.at(peak, flat, sig.ravel())
     stats = np.stack([peak[1:], np.sqrt(mass)], axis=1)
-    tails, expected, flagged = fit_null(stats, rate)
+    rep = np.ones(n, bool) if reportable is None else np.asarray(reportable(lab, n), bool)
+    tails, expected, flagged = fit_null(stats, rate, reportable=rep)
     info: dict[str, Any] = {
         "median": med, "mad_sigma": mad, "candidate_level": level, "candidates": n,
-        "flagged": int(flagged.sum()), "false_alarm_rate": rate,
+        "reportable": int(rep.sum()), "flagged": int(flagged.sum()), "false_alarm_rate": rate,
         "null_clusters": len(tails[0].stats),
         "null_tails": {name: {"from": t.v, "clusters": t.k, "scale": t.sigma,
-                              "level_at_rate": t.level(rate / len(tails))}
+                              "level_at_rate": t.level(rate / len(tails)),
+                              "level_at_rate_any": t.level(rate / len(tails), reported=False),
+                              "reportable_share": float(t.share(np.inf))}
                        for name, t in zip(("peak", "root_mass"), tails, strict=True)}}
-    return Candidates(lab, level, stats, tails, expected, flagged, info)
+    return Candidates(lab, level, stats, tails, expected, flagged, info, rep)
 
 
 def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
@@ -252,14 +321,18 @@ def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: 
         members: dict[int, np.ndarray] = {
             i: idx[bounds[i]:bounds[i + 1]] for i in range(1, n_markers + 1)}
         sflat, aflat = s.ravel(), a.ravel()
-        ridge_level = null.tails[0].level(rate / len(null.tails)) if null.tails else math.inf
+        # what the pair's noise clusters reach in height at the rate, reportable or not
+        ridge_level = (null.tails[0].level(rate / len(null.tails), reported=False)
+                       if null.tails else math.inf)
 
         def separate(pix: np.ndarray, saddle: float) -> bool:
             v = sflat[pix]
             above = v > saddle
             stats = np.array([null.level + float(v.max()) - saddle,
                               math.sqrt(float(((v[above] - saddle) * aflat[pix][above]).sum()))])
-            return null.expected_false(stats) <= rate
+            # as strong as the noise's clusters reach, reportable or not: a piece is not
+            # measured, so not known to pass the checks
+            return null.expected_false(stats, reported=False) <= rate
 
         for i in np.argsort(-ev, kind="stable"):
             gi, gj = find(int(ea[i])), find(int(eb[i]))
@@ -280,6 +353,7 @@ def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: 
 
 def changed_mask(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
                  ) -> np.ndarray:
-    """Pixels of the clusters flagged as changes at ``rate`` (illumination's second pass)."""
+    """Pixels of the clusters flagged as changes at ``rate`` (illumination's second pass; every
+    null cluster counted: the checks need the matched colours this pass computes)."""
     c = candidates(sig, joint, area, rate)
     return np.isin(c.labels, np.nonzero(c.flagged)[0] + 1)
