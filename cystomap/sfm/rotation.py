@@ -69,22 +69,48 @@ class Discrepancies:
     inliers: np.ndarray  # (N,) verified matches of each pair
 
 
+def _essential_from_rays(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Linear (eight-point) essential matrix of verified inlier rays, x2^T E x1 = 0."""
+    a = np.einsum("ni,nj->nij", np.c_[x2, np.ones(len(x2))], np.c_[x1, np.ones(len(x1))])
+    e = np.linalg.svd(a.reshape(len(x1), 9))[2][-1].reshape(3, 3)
+    u, _, vt = np.linalg.svd(e)
+    return u @ np.diag([1.0, 1.0, 0.0]) @ vt
+
+
 def _relative_rotation(geometry: Any, x1: np.ndarray, x2: np.ndarray) -> np.ndarray | None:
     """The pair's rotation (camera 2 from camera 1) from its essential matrix and its inlier
-    rays (normalised image coordinates); estimated from the rays when none is stored."""
-    import cv2
-
+    rays (normalised image coordinates): of the four decompositions, the one that puts most
+    rays in front of both cameras. Estimated from the rays when no matrix is stored. (numpy
+    only: OpenCV's calls here made the stage's later output differ from run to run.)"""
     if len(x1) < 8:
         return None
     e = np.asarray(getattr(geometry, "E", np.zeros((3, 3))), dtype=np.float64) \
         if geometry is not None else np.zeros((3, 3))
     if not np.abs(e).sum():
-        e, _ = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.999,
-                                    threshold=1e-3)
-        if e is None or e.shape != (3, 3):
-            return None
-    _, rot, _, _ = cv2.recoverPose(e, x1, x2, np.eye(3))
-    return np.asarray(rot, dtype=np.float64)
+        e = _essential_from_rays(x1, x2)
+    u, _, vt = np.linalg.svd(e)
+    if np.linalg.det(u) < 0:
+        u = -u
+    if np.linalg.det(vt) < 0:
+        vt = -vt
+    w = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    r1 = np.c_[x1, np.ones(len(x1))]
+    r2 = np.c_[x2, np.ones(len(x2))]
+    best, front = None, -1
+    for rot in (u @ w @ vt, u @ w.T @ vt):
+        for t in (u[:, 2], -u[:, 2]):
+            # depths z1, z2 with z2 r2 = z1 R r1 + t (least squares per ray): both positive
+            a1 = r1 @ rot.T
+            aa, bb, ab = np.sum(a1 * a1, 1), np.sum(r2 * r2, 1), np.sum(a1 * r2, 1)
+            at, bt = a1 @ t, r2 @ t
+            det = aa * bb - ab * ab
+            ok = np.abs(det) > 1e-12
+            z1 = np.where(ok, (-bb * at + ab * bt) / np.where(ok, det, 1.0), 0.0)
+            z2 = np.where(ok, (aa * bt - ab * at) / np.where(ok, det, 1.0), 0.0)
+            n = int(np.sum((z1 > 0) & (z2 > 0)))
+            if n > front:
+                best, front = rot, n
+    return best
 
 
 def _calibrated(geometry: Any) -> bool:
