@@ -273,37 +273,34 @@ def test_failed_run_keeps_earlier_output(tmp_path):
     shutil.rmtree(out)
 
 
-def test_self_check_fails_a_folded_model():
-    """A synthetic model whose second half is turned by 30 degrees (a fold) contradicts the
-    matches linking the halves: the self-check names the place; the unfolded model passes."""
+def _turn_from(rec: object, names: list[str], first: int, degrees: float,
+               shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    """Turn the frames of ``rec`` from the ``first``-th on by ``degrees`` about y (and shift)."""
     import pycolmap
     from scipy.spatial.transform import Rotation
 
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_euler("y", degrees, degrees=True)
+                                                .as_quat()), np.array(shift))
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        if names.index(image.name) >= first:
+            frame = rec.frame(image.frame_id)
+            frame.rig_from_world = frame.rig_from_world * turn
+
+
+def test_self_check_fails_a_folded_model(tmp_path):
+    """A synthetic model whose second half is turned by 30 degrees (a fold) contradicts the
+    matches linking the halves: the self-check names the place; the unfolded model passes."""
     from cystomap.sfm import consistency
 
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 12, 300
-    pycolmap.set_random_seed(0)
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        db = pycolmap.Database.open(str(Path(tmp) / "db.db"))
-        rec = pycolmap.synthesize_dataset(opts, db)
-        db.close()
-        names = sorted(rec.image(i).name for i in rec.reg_image_ids())
-        geoms = consistency.read_geometries(Path(tmp) / "db.db", names)
+    rec, db, names = _synthetic_model(tmp_path, 12, 300)
+    geoms = consistency.read_geometries(db, names)
     chain = {p for p in geoms if p[1] - p[0] <= 3}
     loops = set(geoms) - chain
     fig = consistency.self_check(rec, names, geoms, chain, loops, SfmConfig())
     assert fig["consistent"] and fig["weakest_seam_share"] == 1.0
     assert fig["loop_agreeing_share"] == 1.0 and fig["loop_pairs"] == len(loops)
-    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_euler("y", 30, degrees=True)
-                                                .as_quat()), np.array([0.5, 0.0, 0.0]))
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        if names.index(image.name) >= 6:
-            frame = rec.frame(image.frame_id)
-            frame.rig_from_world = frame.rig_from_world * turn
+    _turn_from(rec, names, 6, 30, (0.5, 0.0, 0.0))
     with pytest.raises(StageError, match=rf"between {names[5]} and {names[6]} .* contradict"):
         consistency.self_check(rec, names, geoms, chain, loops, SfmConfig())
 
@@ -565,13 +562,13 @@ def test_working_size_follows_the_lit_field_of_view(tmp_path):
     assert working_scale(cam, from_mapping(SfmConfig, {"max_image_size": 0}, "sfm"), 759) == 1.0
 
 
-def _synthetic_model(tmp: Path, n_frames: int = 12) -> tuple:
+def _synthetic_model(tmp: Path, n_frames: int = 12, n_points: int = 400) -> tuple:
     """A synthetic COLMAP model with its database (matches of every pair) and frame names in
     order."""
     import pycolmap
 
     opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, n_frames, 400
+    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, n_frames, n_points
     pycolmap.set_random_seed(0)
     db = pycolmap.Database.open(str(tmp / "db.db"))
     rec = pycolmap.synthesize_dataset(opts, db)
@@ -719,6 +716,20 @@ def test_drift_flag_warns_or_fails_the_stage(tmp_path):
     ok = {"consistent": True, "halves": {**halves, "consistent": True}}
     _judge_halves(ok, SfmConfig(), failed, [], None, {})
     assert ok["consistent"] is True and "reason" not in ok
+    # the loop rotations' flag goes the same way (cystomap/sfm/rotation.py)
+    from cystomap.sfm.pipeline import _judge_rotation
+
+    rot = {"flagged": True, "worst_pairs": 10, "worst_deg": 3.44, "p_value": 0.001,
+           "worst_frames": [["f000002.png", "f000007.png"], ["f000065.png", "f000068.png"]]}
+    check = {"consistent": True, "rotation": rot}
+    _judge_rotation(check, SfmConfig(), tmp_path / "rot.failed", [], None, {})
+    assert check["consistent"] is False and "f000002.png..f000007.png" in check["reason"]
+    assert "3.4°" in check["reason"] and not (tmp_path / "rot.failed").exists()
+    with pytest.raises(StageError, match=r"rotation drift: 10 loop pairs linking f000002"):
+        _judge_rotation({"consistent": True, "rotation": rot},
+                        from_mapping(SfmConfig, {"rotation_check": "fail"}, "sfm"),
+                        tmp_path / "rot.failed", ["f000002.png"], None, {})
+    assert json.loads((tmp_path / "rot.failed" / "quality.json").read_text())["failed"] is True
 
 
 def test_plain_frames_are_detected_on_doubled_images(tmp_path_factory, tmp_path):
@@ -751,43 +762,28 @@ def test_plain_frames_are_detected_on_doubled_images(tmp_path_factory, tmp_path)
     assert medians["default", "on"] == medians["default", "off"] > 256
 
 
-def test_loop_rotations_flag_rotation_drift():
+def test_loop_rotations_flag_rotation_drift(tmp_path):
     """Rotation drift the epipolar tests cannot see: a synthetic model whose frames from 8 on
     are turned by 3° (loop pairs measured with 0.5 px noise) is flagged, with the size and the
     place of the turn; the unturned model is not (cystomap/sfm/rotation.py)."""
-    import tempfile
     from types import SimpleNamespace
 
     import pycolmap
-    from scipy.spatial.transform import Rotation
 
     from cystomap.sfm import consistency, rotation
 
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 16, 400
-    pycolmap.set_random_seed(0)
-    with tempfile.TemporaryDirectory() as tmp:
-        db = pycolmap.Database.open(str(Path(tmp) / "db.db"))
-        rec = pycolmap.synthesize_dataset(opts, db)
-        db.close()
-        noise = pycolmap.SyntheticNoiseOptions()
-        noise.point2D_stddev = 0.5
-        pycolmap.synthesize_noise(noise, rec)
-        names = sorted(rec.image(i).name for i in rec.reg_image_ids())
-        geoms = consistency.read_geometries(Path(tmp) / "db.db", names)
+    rec, db, names = _synthetic_model(tmp_path, 16)
+    geoms = consistency.read_geometries(db, names)
+    noise = pycolmap.SyntheticNoiseOptions()
+    noise.point2D_stddev = 0.5
+    pycolmap.synthesize_noise(noise, rec)
     for g in geoms.values():  # essential matrices estimated again from the noisy points
         g.geometry = SimpleNamespace(config=rotation.CALIBRATED, E=np.zeros((3, 3)))
     loops = {p for p in geoms if p[1] - p[0] > 3}
     ok = rotation.rotation_check(rec, names, geoms, loops, SfmConfig())
     assert ok["checked"] and not ok["flagged"] and ok["p_value"] > 0.05, ok
     assert ok["pairs_tested"] == len(loops) and ok["median_deg"] < 1.5, ok
-    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_euler("y", 3, degrees=True)
-                                                .as_quat()), np.zeros(3))
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        if names.index(image.name) >= 8:
-            frame = rec.frame(image.frame_id)
-            frame.rig_from_world = frame.rig_from_world * turn
+    _turn_from(rec, names, 8, 3)
     bad = rotation.rotation_check(rec, names, geoms, loops, SfmConfig())
     assert bad["flagged"] and bad["p_value"] <= rotation.ALPHA, bad
     assert 2.0 < bad["worst_deg"] < 4.0, bad  # measured 2.89

@@ -340,6 +340,20 @@ def run_sfm(
     return out_dir
 
 
+def _judge(check: dict[str, Any], reason: str, mode: str, key: str, failed: Path,
+           names: list[str], result: mapping.MappingResult, pair_stats: dict[str, int]) -> None:
+    """A self-check found the model wrong by ``reason``: flag it in ``check`` and warn
+    (``mode`` warn) or fail the stage with what reconstructed left in ``failed`` (fail)."""
+    check["consistent"] = False
+    check["reason"] = f"{check['reason']}; {reason}" if check.get("reason") else reason
+    message = f"sfm self-check: the model shows {reason}; its poses there are not reliable"
+    if mode == "fail":
+        _write_failed(failed, message, names, result, pair_stats)
+        raise StageError(f"{message}; details in {failed}")
+    log.warning("%s (flagged in quality.json consistency; sfm.%s: fail would fail the stage)",
+                message, key)
+
+
 def _judge_halves(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: list[str],
                   result: mapping.MappingResult, pair_stats: dict[str, int]) -> None:
     """Flag (warn) or fail (``halves_check: fail``) a model the independent halves contradict
@@ -347,17 +361,10 @@ def _judge_halves(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: li
     h = check["halves"]
     if h.get("consistent", True):
         return
-    check["consistent"] = False
-    check["reason"] = (f"drift: {h['longest_off_run']} consecutive frames from "
-                       f"{h['off_run_from']} are placed more than one frame step "
-                       f"({h['residual_max_steps']} steps at most) from where two maps of "
-                       f"disjoint halves of the frames put them")
-    message = f"sfm self-check: the model {check['reason']}; its poses there are not reliable"
-    if cfg.halves_check == "fail":
-        _write_failed(failed, message, names, result, pair_stats)
-        raise StageError(f"{message}; details in {failed}")
-    log.warning("%s (flagged in quality.json consistency; sfm.halves_check: fail would fail "
-                "the stage)", message)
+    _judge(check, f"drift: {h['longest_off_run']} consecutive frames from {h['off_run_from']} "
+                  f"are placed more than one frame step ({h['residual_max_steps']} steps at "
+                  f"most) from where two maps of disjoint halves of the frames put them",
+           cfg.halves_check, "halves_check", failed, names, result, pair_stats)
 
 
 def _judge_rotation(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: list[str],
@@ -368,17 +375,11 @@ def _judge_rotation(check: dict[str, Any], cfg: SfmConfig, failed: Path, names: 
     if not r.get("flagged"):
         return
     (a0, a1), (b0, b1) = r["worst_frames"]
-    reason = (f"rotation drift: {r['worst_pairs']} loop pairs linking {a0}..{a1} to {b0}..{b1} "
-              f"measure the model {r['worst_deg']:.1f}° off between them (the loop pairs' "
-              f"rotations agree with their neighbours' beyond noise, p {r['p_value']:.3f})")
-    check["consistent"] = False
-    check["reason"] = f"{check['reason']}; {reason}" if check.get("reason") else reason
-    message = f"sfm self-check: {reason}; its poses there are not reliable"
-    if cfg.rotation_check == "fail":
-        _write_failed(failed, message, names, result, pair_stats)
-        raise StageError(f"{message}; details in {failed}")
-    log.warning("%s (flagged in quality.json consistency; sfm.rotation_check: fail would fail "
-                "the stage)", message)
+    _judge(check, f"rotation drift: {r['worst_pairs']} loop pairs linking {a0}..{a1} to "
+                  f"{b0}..{b1} measure the model {r['worst_deg']:.1f}° off between them (the "
+                  f"loop pairs' rotations agree with their neighbours' beyond noise, p "
+                  f"{r['p_value']:.3f})",
+           cfg.rotation_check, "rotation_check", failed, names, result, pair_stats)
 
 
 class _HoldBack(Exception):

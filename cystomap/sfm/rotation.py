@@ -258,12 +258,11 @@ def rotation_check(rec: Any, names: list[str], geoms: dict[tuple[int, int], Any]
     if out["checked"]:
         (a0, a1), (b0, b1) = out["worst_frames"]
         out["worst_frames"] = [[names[a0], names[a1]], [names[b0], names[b1]]]
-        log.log(logging.WARNING if out["flagged"] else logging.INFO,
-                "rotation self-check: %d loop pairs with parallax on the same wall, median %.2f° "
+        log.info("rotation self-check: %d loop pairs with parallax on the same wall, median %.2f° "
                 "from the model; neighbouring ones agree %.2f (sign-flipped: at most %.2f, p "
-                "%.4f)%s; most deviant: the %d linking %s-%s to %s-%s, %.2f° off", out["pairs_tested"],
-                out["median_deg"], out["agreement"], out["agreement_null_max"], out["p_value"],
-                ": the model has turned one place of the video against another (rotation drift)"
+                "%.4f)%s; most deviant: the %d linking %s-%s to %s-%s, %.2f° off",
+                out["pairs_tested"], out["median_deg"], out["agreement"],
+                out["agreement_null_max"], out["p_value"], ": rotation drift (warned below)"
                 if out["flagged"] else "", out["worst_pairs"], names[a0], names[a1], names[b0],
                 names[b1], out["worst_deg"])
     return out
