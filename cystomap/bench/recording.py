@@ -1,7 +1,7 @@
 """Benchmark: whole recording-like phantom sessions, video to atlas, timed and scored.
 
     python -m cystomap.bench.recording --out results/bench [--lengths 60,120,180]
-        [--size 1920x1080] [--scale 1] [--fps 30]
+        [--size 1920x1080] [--scale 1] [--render-scale 1] [--fps 30]
 
 Each length (seconds) is one phantom session with ``trajectory: recording`` (slow scan,
 pauses, returns, fast bends with motion blur; :mod:`cystomap.phantom.recording`), rendered
@@ -44,11 +44,12 @@ BLUR_REL = 0.0125
 LOSSLESS_BELOW = 1280
 
 
-def session_config(seconds: float, fps: float, width: int, seed: int) -> PhantomConfig:
+def session_config(seconds: float, fps: float, width: int, seed: int,
+                   render_scale: float = 1.0) -> PhantomConfig:
     """The phantom of one benchmark session."""
     return PhantomConfig(seed=seed, trajectory="recording", duration_s=seconds, fps=fps,
                          motion_blur_px=round(BLUR_REL * width, 2),
-                         lossless_video=width < LOSSLESS_BELOW)
+                         lossless_video=width < LOSSLESS_BELOW, render_scale=render_scale)
 
 
 def render_cached(cache: Path, tag: str, cfg: PhantomConfig, width: int, height: int) -> Path:
@@ -131,11 +132,12 @@ def score(root: Path, truth: Path) -> dict[str, Any]:
 
 
 def bench(cache: Path, lengths: Sequence[float], fps: float, width: int, height: int,
-          seed: int, cores: int) -> list[dict[str, Any]]:
+          seed: int, cores: int, render_scale: float = 1.0) -> list[dict[str, Any]]:
     rows = []
     for seconds in lengths:
-        tag = f"{seconds:g}s_{width}x{height}_{fps:g}fps_seed{seed}"
-        cfg = session_config(seconds, fps, width, seed)
+        tag = f"{seconds:g}s_{width}x{height}_{fps:g}fps_seed{seed}" + (
+            "" if render_scale == 1 else f"_render{render_scale:g}")
+        cfg = session_config(seconds, fps, width, seed, render_scale)
         t0 = time.perf_counter()
         truth = render_cached(cache, tag, cfg, width, height)
         render_s = json.loads((truth / "truth.json").read_text())["render_seconds"]
@@ -172,6 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--size", default="1920x1080", help="frame size WxH")
     p.add_argument("--scale", type=float, default=1.0,
                    help="multiplies --size (1/3: 640x360) for quick runs")
+    p.add_argument("--render-scale", type=float, default=1.0,
+                   help="render at this share of the size and enlarge (phantom render_scale)")
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--cores", type=int, default=2)
@@ -180,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     w, h = (int(v) for v in args.size.split("x"))
     width, height = round(w * args.scale / 2) * 2, round(h * args.scale / 2) * 2
     rows = bench(args.cache or args.out / "recording", [float(s) for s in args.lengths.split(",")],
-                 args.fps, width, height, args.seed, args.cores)
+                 args.fps, width, height, args.seed, args.cores, args.render_scale)
     write_table(rows, args.out, "recording",
                 "Recording-like phantom sessions, video to atlas (Snakemake benchmark files; times "
                 f"in s, wall and CPU of each job, memory = peak RSS in MB; {time.strftime('%Y-%m-%d')})")

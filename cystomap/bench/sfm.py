@@ -4,9 +4,9 @@
 
 Sessions are named ``condition`` or ``condition:seed`` (phantom seed; default 7): the
 conditions of issue 12 (clean, glints + blur + bad frames, mosaic texture, uncalibrated scope
-with barrel distortion, 7 % deformed second session) and earlier ones (dense, lowtex);
-``--seeds 1,2,3,4,5`` runs every condition on those seeds and ``--scale 0.5`` renders at half
-size (640x360).
+with barrel distortion, 7 % deformed second session, the scope's round image in a black
+1920x1080 frame: ``halfblack``) and earlier ones (dense, lowtex); ``--seeds 1,2,3,4,5`` runs
+every condition on those seeds and ``--scale 0.5`` renders at half size (640x360).
 
 For each phantom session (generated once into ``--work``; every video frame is decoded and
 preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap.sfm.run_sfm`
@@ -51,6 +51,14 @@ SESSIONS: dict[str, dict[str, Any]] = {
     # barrel distortion k1 = -0.2; the stage is told only the diagonal FOV (76 deg, true)
     "uncal": {"lens_k1": -0.2},
     "deformed": {"deformation": 0.07},  # session 2 of a bladder filled 7 % differently
+    # the scope's round image, 0.95 of the height across, in a black 1920x1080 frame (43 % of
+    # it lit, like issue 12's in vivo recording); the same 76 deg across the circle
+    "halfblack": {"image_circle": 0.95},
+}
+_CIRCLE_PX = 0.95 * 1080
+CAMERAS: dict[str, Camera] = {
+    "halfblack": Camera(1920, 1080, *(2 * (_CIRCLE_PX / 2 / math.tan(math.radians(38)),)),
+                        959.5, 539.5, CAMERA.dist, name="scope_1080_circle"),
 }
 UNCALIBRATED = {"uncal"}
 SECOND_SESSION = {"deformed"}
@@ -81,7 +89,8 @@ def prepare(work: Path, tag: str, overrides: dict[str, Any] | None = None, scale
     root = work / (tag.replace(":", "_") + ("" if scale == 1.0 else f"_x{scale:g}"))
     truth = root / "session"
     pre = root / "preprocessed"
-    camera = CAMERA.scaled(scale) if scale != 1.0 else CAMERA
+    camera = CAMERAS.get(cond, CAMERA)
+    camera = camera.scaled(scale) if scale != 1.0 else camera
     if not (truth / "truth.json").is_file():
         log.info("%s: rendering phantom session %s", tag, overrides or "(defaults)")
         generate_session(truth, 2 if cond in SECOND_SESSION else 1,

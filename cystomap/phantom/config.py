@@ -84,6 +84,15 @@ class PhantomConfig:
     # other coefficients and the pinhole part are kept). With a diagonal_fov_deg-only camera, e.g.
     # -0.2, the pipeline must estimate the distortion; camera.json holds the rendered lens.
     lens_k1: float | None = setting(None, "[-0.45, 0.3]")
+    # Diameter of the scope's round image as a share of the frame's height (0 = the image fills
+    # the frame): a cystoscope whose image circle sits in a wider black frame (0.95 in a
+    # 1920x1080 frame fills 43 % of it, like the in vivo recording of issue 12). Outside the
+    # circle the frame is black but for the sensor noise; seen.png counts only what is inside.
+    image_circle: float = setting(0.0, "[0, 3]")
+    # Render at this share of the camera's size and enlarge each frame to it (bilinear) before
+    # it is coded: 0.5 traces a quarter of the rays (for long 1080p recordings), at the cost of
+    # the texture finer than the rendered pixels; truth.json and camera.json are the video's.
+    render_scale: float = setting(1.0, "(0, 1]")
     # Texture family of the subject; empty = the fixed default wall. A = pink, fine mottling, the
     # default vessel network; B = pale, coarse strong blotches, sparse faint vessels, little
     # grain; C = red (inflamed), fine strong mottling, dense dark vessels, strong grain. Mottling

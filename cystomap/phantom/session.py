@@ -155,6 +155,16 @@ def _motion_blur(cfg: PhantomConfig, camera: Camera, traj: Trajectory, centre_t:
     return length, np.arctan2(vel[:, 1], vel[:, 0])
 
 
+def _outside_circle(camera: Camera, share: float) -> np.ndarray | None:
+    """(H, W) True outside the scope's round image of diameter ``share`` x the frame height,
+    centred in the frame; None when the image fills the frame (``share`` 0)."""
+    if share <= 0:
+        return None
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    r = np.hypot(u - (camera.width - 1) / 2, v - (camera.height - 1) / 2)
+    return r > share * camera.height / 2
+
+
 def _write_poses(path: Path, traj: Trajectory) -> None:
     q = _quaternions(traj.rotations)
     with open(path, "w", newline="") as fh:
@@ -193,7 +203,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     out_dir = Path(out_dir)
     t_start = time.perf_counter()
     given = camera
-    camera = render_camera(cfg, camera)
+    shown = render_camera(cfg, camera)  # the video's camera
+    camera = shown.scaled(cfg.render_scale) if cfg.render_scale < 1 else shown
     base = base_bladder(cfg)
     scene1 = base.scene()
     bladder = session_bladder(cfg, session)
@@ -211,6 +222,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     if photo["vignetting_exponent"] != 3.0:
         rays.vignette = np.power(np.clip(rays.dirs[:, 2], 0, 1),
                                  np.float32(photo["vignetting_exponent"])).astype(np.float32)
+    outside = _outside_circle(camera, cfg.image_circle)
     renderer = Renderer(camera, bladder, scene, cube, rays=rays,
                         falloff_exponent=photo["falloff_exponent"])
     axis_hit = cast(scene, traj.centres.astype(np.float32),
@@ -222,18 +234,22 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
             0, photo["flicker"], size=len(exposure)))
     wb_display = np.power(np.array(photo["white_balance"], np.float32), np.float32(1 / GAMMA))
     blur_len, blur_ang = _motion_blur(cfg, camera, traj, axis_hit)
+    blur_len = blur_len * cfg.render_scale  # motion_blur_px is in the video's pixels
     bad = _bad_frames(cfg, session)
     gain = cfg.session2_gain if session == 2 else 1.0
     atlas = Atlas(bladder, scene, cfg.atlas_height)
     optical = optical_blur_px(camera)
     threads = cfg.threads or min(2, os.cpu_count() or 1)
     cast_threads = 1 if threads > 1 else 0
-    log.info("phantom session %d: %d frames %dx%d, %d threads (setup %.1f s)", session, n,
-             camera.width, camera.height, threads, time.perf_counter() - t_start)
+    log.info("phantom session %d: %d frames %dx%d (rendered at %dx%d), %d threads (setup %.1f s)",
+             session, n, shown.width, shown.height, camera.width, camera.height, threads,
+             time.perf_counter() - t_start)
 
     def render(k: int) -> tuple[np.ndarray, dict, np.ndarray | None]:
         tr = renderer.trace(traj.rotations[k], traj.centres[k], nthreads=cast_threads)
         img = renderer.shade(tr, float(exposure[k]), gain, cfg.specular)
+        if outside is not None:
+            img[outside] = 0.0
         if photo["variation"] > 0:
             img = img * wb_display  # white balance on the linear signal, shown after gamma
         noise = np.random.default_rng(np.random.SeedSequence([cfg.seed, STREAM_NOISE + session, k]))
@@ -245,6 +261,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         seen_idx = None
         if k not in bad:
             t_map = tr.t.reshape(camera.height, camera.width)
+            if outside is not None:
+                t_map = np.where(outside, np.nan, t_map)
             wall_t = tr.t[tr.wall]
             if len(wall_t):
                 sub = np.flatnonzero(tr.wall)[::7]
@@ -253,6 +271,8 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
                 dirs = rel / np.linalg.norm(rel, axis=1, keepdims=True)
                 seen_idx = atlas.visible(camera, traj.rotations[k], traj.centres[k], t_map, dirs,
                                           renderer.rays.max_radius)
+        if camera is not shown:
+            out = cv2.resize(out, (shown.width, shown.height), interpolation=cv2.INTER_LINEAR)
         return cv2.cvtColor(out, cv2.COLOR_RGB2BGR), stats, seen_idx
 
     seen = np.zeros(atlas.h * atlas.w, bool)
@@ -261,7 +281,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
     t_render = time.perf_counter()
     with atomic_dir(out_dir) as tmp:
         writer = cv2.VideoWriter(str(tmp / "video.mp4"), cv2.VideoWriter_fourcc(*codec),
-                                 float(cfg.fps), (camera.width, camera.height))
+                                 float(cfg.fps), (shown.width, shown.height))
         if not writer.isOpened():
             raise StageError(f"phantom: cannot open an {codec} VideoWriter (OpenCV without FFMPEG?)")
         try:
@@ -280,7 +300,7 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
                     "frames_seconds": round(time.perf_counter() - t_render, 2),
                     "threads": threads}
         _write_poses(tmp / "poses.csv", traj)
-        camera.save(tmp / "camera.json")
+        shown.save(tmp / "camera.json")
         nw = bladder.n_wall_verts
         vcol, _ = cube.sample(bladder.material[:nw])
         write_ply(tmp / "surface.ply", bladder.vertices[:nw], bladder.wall_triangles,
@@ -292,10 +312,11 @@ def generate_session(out_dir: Path, session: int, cfg: PhantomConfig, camera: Ca
         cv2.imwrite(str(tmp / "seen.png"), seen_img)
         rows = with_regions(lesion_rows(lesions, bladder), bladder) if session == 2 else []
         _write_lesions(tmp / "lesions.csv", rows)
-        truth = _truth(cfg, session, camera, bladder, atlas, seen, traj, exposure, blur_len,
+        truth = _truth(cfg, session, shown, bladder, atlas, seen, traj, exposure,
+                       blur_len / cfg.render_scale,
                        blur_ang, bad, gain, dmin, dmed, axis_hit, render_s, rows, optical)
         truth["video_codec"] = codec.lower()
-        truth["lens"] = lens_truth(cfg, given, camera)
+        truth["lens"] = lens_truth(cfg, given, shown)
         truth["photometry"] = photo
         truth["texture"] = {"mode": cfg.texture_mode, "family": cfg.texture_family,
                             "params": cube.params.to_dict() if cube.params is not None else None,
