@@ -7,6 +7,10 @@ conditions of issue 12 (clean, glints + blur + bad frames, mosaic texture, uncal
 with barrel distortion, 7 % deformed second session, the scope's round image in a black
 1920x1080 frame: ``halfblack``) and earlier ones (dense, lowtex); ``--seeds 1,2,3,4,5`` runs
 every condition on those seeds and ``--scale 0.5`` renders at half size (640x360).
+``--video lossless`` codes the phantom video with FFV1 (as the FROC and recording benchmarks do
+below 1280 px) instead of mp4v, whose fixed quantiser removes the wall's fine texture at
+640x360 (clean seeds 1-3 at half size, 2026-12-03: mp4v 79-124 of 124 frames at 0.61-0.77 mm,
+FFV1 124/124 at 0.06-0.09 mm).
 
 For each phantom session (generated once into ``--work``; every video frame is decoded and
 preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap.sfm.run_sfm`
@@ -86,7 +90,8 @@ def prepare(work: Path, tag: str, overrides: dict[str, Any] | None = None, scale
     overrides = {**SESSIONS[cond], **(overrides or {})}
     if scale != 1.0 and "motion_blur_px" in overrides:
         overrides["motion_blur_px"] *= scale
-    root = work / (tag.replace(":", "_") + ("" if scale == 1.0 else f"_x{scale:g}"))
+    root = work / (tag.replace(":", "_") + ("" if scale == 1.0 else f"_x{scale:g}")
+                   + ("_lossless" if overrides.get("lossless_video") else ""))
     truth = root / "session"
     pre = root / "preprocessed"
     camera = CAMERAS.get(cond, CAMERA)
@@ -180,13 +185,14 @@ COLUMNS = ("session", "method", "runs", "frames", "registered", "models", "large
 
 def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: int,
           baseline_sessions: Sequence[str], earlier: Sequence[dict[str, Any]] = (),
-          scale: float = 1.0) -> list[dict[str, Any]]:
+          scale: float = 1.0, lossless: bool = False) -> list[dict[str, Any]]:
     from cystomap.evaluate import load_truth
 
     reuse = {r["session"]: r for r in earlier if r.get("method") == "pycolmap defaults"}
     rows = []
     for tag in sessions:
-        truth_dir, pre = prepare(work, tag, scale=scale)
+        truth_dir, pre = prepare(work, tag, {"lossless_video": True} if lossless else None,
+                                 scale=scale)
         extent = load_truth(truth_dir).extent_mm
         methods = [("cystomap", repeats)]
         totals: dict[str, tuple[float, float]] = {}
@@ -273,6 +279,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="comma-separated phantom seeds: every session condition on each")
     p.add_argument("--scale", type=float, default=1.0,
                    help="render size relative to 1280x720 (0.5: 640x360)")
+    p.add_argument("--video", choices=("mp4v", "lossless"), default="mp4v",
+                   help="codec of the phantom video: mp4v, or lossless (FFV1, as the FROC and "
+                        "recording benchmarks below 1280 px)")
     p.add_argument("--repeats", type=int, default=3, help="runs of the stage per session")
     p.add_argument("--baseline-repeats", type=int, default=1, help="runs of pycolmap's defaults")
     p.add_argument("--baseline-sessions", default="default",
@@ -298,7 +307,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     load = " ".join(f"{v:.1f}" for v in os.getloadavg())
     earlier = json.loads(args.reuse_baseline.read_text())["rows"] if args.reuse_baseline else []
     rows = bench(args.work, sessions, args.repeats, args.baseline_repeats,
-                 [s for s in args.baseline_sessions.split(",") if s], earlier, args.scale)
+                 [s for s in args.baseline_sessions.split(",") if s], earlier, args.scale,
+                 args.video == "lossless")
     meta = {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "load": load,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:]}
     write_tables(args.out, rows, meta)
