@@ -86,7 +86,7 @@ class PhantomConfig:
     lens_k1: float | None = setting(None, "[-0.45, 0.3]")
     # Diameter of the scope's round image as a share of the frame's height (0 = the image fills
     # the frame): a cystoscope whose image circle sits in a wider black frame (0.95 in a
-    # 1920x1080 frame fills 43 % of it, like the in vivo recording of issue 12). Outside the
+    # 1920x1080 frame lights 40 % of it; issue 12's in vivo recording: 43 %). Outside the
     # circle the frame is black but for the sensor noise; seen.png counts only what is inside.
     image_circle: float = setting(0.0, "[0, 3]")
     # Render at this share of the camera's size and enlarge each frame to it (bilinear) before
