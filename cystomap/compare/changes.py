@@ -77,6 +77,13 @@ says how much of it was compared (``delta_e`` and ``local_delta_e`` are measured
 compared part). Regions that end up describing
 the same wall (both pieces of a cut change followed into the gap) are reported once.
 
+Poles: the grid is azimuth/elevation, so its pixels crowd towards both poles (the dome and
+the neck). Whatever is a statistic of the wall is weighted by wall area (the tone match and
+noise covariance of :mod:`cystomap.compare.difference`, the candidate level), blurs continue
+across the poles and are Gaussian on the wall there (:func:`cystomap.compare.grid.blur_mm`),
+clusters are joined across the poles as across the seam, and a region's ring and reach are
+distances on the wall (:func:`cystomap.compare.morphology.near_on_wall`).
+
 Measurement: each region's outline is where its significance exceeds half of its own peak
 (99th percentile), the full-width-at-half-maximum outline, holes filled: a blurred disc's
 half-maximum contour lies on its edge whatever its contrast, so the size does not depend on
