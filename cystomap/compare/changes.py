@@ -77,6 +77,13 @@ says how much of it was compared (``delta_e`` and ``local_delta_e`` are measured
 compared part). Regions that end up describing
 the same wall (both pieces of a cut change followed into the gap) are reported once.
 
+Poles: the grid is azimuth/elevation, so its pixels crowd towards both poles (the dome and
+the neck). Whatever is a statistic of the wall is weighted by wall area (the tone match and
+noise covariance of :mod:`cystomap.compare.difference`, the candidate level), blurs continue
+across the poles and are Gaussian on the wall there (:func:`cystomap.compare.grid.blur_mm`),
+clusters are joined across the poles as across the seam, and a region's ring and reach are
+distances on the wall (:func:`cystomap.compare.morphology.near_on_wall`).
+
 Measurement: each region's outline is where its significance exceeds half of its own peak
 (99th percentile), the full-width-at-half-maximum outline, holes filled: a blurred disc's
 half-maximum contour lies on its edge whatever its contrast, so the size does not depend on
@@ -97,7 +104,7 @@ import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid
-from cystomap.compare.morphology import _disc, _fill_holes, _morph, _ring, label_wrapped
+from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
 from cystomap.compare.null import (
     CANDIDATE_MADS,
     Candidates,
@@ -215,7 +222,7 @@ def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nd
 
 def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
                         sub_joint: np.ndarray, sub_hit: np.ndarray, rows: tuple[int, int],
-                        c_idx: np.ndarray, ring_px: int, open_px: float,
+                        c_idx: np.ndarray, ring_mm: float, open_px: float,
                         gap_kernel: np.ndarray | None) -> np.ndarray:
     """``outline`` grown over adjoining wall that B saw but that was not compared (A did not
     see it, or it is in the edge margin) where B's smoothed colour is at least half-way from
@@ -229,7 +236,8 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
         return outline
     r_lo, r_hi = rows
     eligible = diff.b_seen[r_lo:r_hi][:, c_idx] & ~sub_joint & ~outline
-    ring = _ring(seen, ring_px) & ~seen & sub_joint
+    sub_pts = diff.grid.points[r_lo:r_hi][:, c_idx]
+    ring = near_on_wall(seen, sub_pts, ring_mm, sub_joint) & ~seen
     if not eligible.any() or ring.sum() < 8:
         return outline
     colour = diff.b_smooth[r_lo:r_hi][:, c_idx]
@@ -243,11 +251,11 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     if open_px >= 0.5:
         cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_OPEN, _disc(open_px)) > 0
     # the compared part may be a small cap of a large change: follow it up to twice the
-    # cap's own equivalent diameter
-    # (a distance transform, not a dilation: the disc can be hundreds of pixels wide)
-    reach_px = max(1, round(2 * math.sqrt(4 * float(seen.sum()) / math.pi)))
-    reach = cv2.distanceTransform((~outline).astype(np.uint8), cv2.DIST_L2,
-                                  cv2.DIST_MASK_PRECISE) <= reach_px
+    # cap's own equivalent diameter, on the wall (its area, not its pixel count: pixels
+    # shrink towards the poles)
+    sub_area = diff.grid.area[r_lo:r_hi][:, c_idx]
+    reach_mm = 2 * math.sqrt(4 * float(sub_area[seen].sum()) / math.pi)
+    reach = near_on_wall(outline, sub_pts, reach_mm, cand)
     grown = outline | (cand & reach)
     link = grown
     if gap_kernel is not None:  # across strips of wall B did not see either
@@ -350,7 +358,6 @@ class _Checks:
         self.diff, self.cfg, self.proj, self.rays, self.verify = diff, cfg, proj_full, rays, verify
         self.openings = openings if openings is not None else np.zeros((0, 3))
         self.min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
-        self.ring_px = max(1, round(float(cfg.ring_mm / grid.mm_per_px_y)))
         # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
         # either side shrink by the morphological opening
         self.gap_kernel = (_disc((cfg.gap_fill_mm / 2 + cfg.edge_margin_mm + cfg.morphology_mm)
@@ -377,7 +384,7 @@ class _Checks:
         cfg, diff, grid = self.cfg, self.diff, self.diff.grid
         flat_sig, flat_area, flat_pts = self.flat_sig, self.flat_area, self.flat_pts
         h, w = grid.shape
-        ring_px, gap_kernel, min_area = self.ring_px, self.gap_kernel, self.min_area
+        gap_kernel, min_area = self.gap_kernel, self.min_area
         peak = float(np.percentile(flat_sig[px], PEAK_PERCENTILE))
         # FWHM outline: within the region's bounding box (grown by its own size), pixels above
         # half the peak that touch the region, holes filled
@@ -385,10 +392,19 @@ class _Checks:
         # regions across the seam: unwrap columns around the region's first column
         c0 = cols[0]
         ucols = (cols - c0 + w // 2) % w - w // 2 + c0
-        size_px = max(np.ptp(rows), np.ptp(ucols))
-        pad = int(size_px if cfg.extend_into_unseen else np.ceil(size_px / 2)) + 3 + ring_px
+        # the window grows by the region's own size (half of it without extend_into_unseen)
+        # and its ring, in mm on the wall: in pixels the columns near the poles are short
+        pts = flat_pts[px]
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        size_mm = float(np.ptp(pts, axis=0).max()) if len(pts) else 0.0
+        grow_mm = (size_mm if cfg.extend_into_unseen else size_mm / 2) + cfg.ring_mm
+        pad = int(np.ceil(grow_mm / grid.mm_per_px_y)) + 3
         r_lo, r_hi = max(0, rows.min() - pad), min(h, rows.max() + pad + 1)
-        pad_c = max(0, min(pad, (w - 1 - int(np.ptp(ucols))) // 2))  # at most one turn
+        # at most one turn; a window that reaches a pole row holds every azimuth (the wall
+        # across the pole is the region's neighbour: its ring and outline reach over)
+        near_pole = r_lo == 0 or r_hi == h
+        pad_c = int(np.ceil(grow_mm / float(grid.mm_per_px_x[r_lo:r_hi].min()))) + 3
+        pad_c = max(0, min(w if near_pole else pad_c, (w - 1 - int(np.ptp(ucols))) // 2))
         c_lo = ucols.min() - pad_c
         c_idx = np.arange(c_lo, ucols.max() + pad_c + 1) % w
         sub_sig = diff.significance[r_lo:r_hi][:, c_idx]
@@ -410,10 +426,15 @@ class _Checks:
             outline = _close_across(outline, gap_kernel, sub_joint, sub_hit)
         if cfg.extend_into_unseen:
             outline = _extend_into_unseen(diff, outline, seen_outline, sub_joint, sub_hit,
-                                          (r_lo, r_hi), c_idx, ring_px,
+                                          (r_lo, r_hi), c_idx, cfg.ring_mm,
                                           cfg.morphology_mm / grid.mm_per_px_y, gap_kernel)
-        ring = _ring(outline, ring_px) & ~outline
-        enclosed = float(sub_joint[ring].mean()) if ring.any() else 0.0
+        # the ring: wall within ring_mm of the outline, on the wall (atlas columns shrink
+        # towards the poles: a ring of pixels there would be a sliver of the lesion's edge)
+        sub_pts = grid.points[r_lo:r_hi][:, c_idx]
+        sub_area = grid.area[r_lo:r_hi][:, c_idx]
+        ring = near_on_wall(outline, sub_pts, cfg.ring_mm) & ~outline
+        enclosed = (float(sub_area[ring & sub_joint].sum()) / max(float(sub_area[ring].sum()), 1e-12)
+                    if ring.any() else 0.0)
         if enclosed < cfg.min_enclosed:
             return "at_edge", None
         r2, c2 = np.nonzero(ring & sub_joint)

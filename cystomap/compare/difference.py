@@ -219,7 +219,7 @@ def refine_flow(grid: Grid, b_rgb: np.ndarray, a_rgb: np.ndarray, joint: np.ndar
     import cv2
 
     h, w = joint.shape
-    a_q, _ = quantile_match(a_rgb, b_rgb, joint)
+    a_q, _ = quantile_match(a_rgb, b_rgb, joint, area=grid.area)
     gb = _grey(b_rgb)
     ga = np.where(joint, _grey(a_q), gb).astype(np.uint8)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -262,15 +262,29 @@ def compose(points: np.ndarray, flow: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- photometry
 
 
+def weighted_percentile(x: np.ndarray, weights: np.ndarray | None, q: np.ndarray) -> np.ndarray:
+    """Percentiles ``q`` (0-100) of ``x`` weighted by ``weights`` (None: unweighted)."""
+    if weights is None:
+        return np.percentile(x, q)
+    order = np.argsort(x, kind="stable")
+    xs, ws = x[order], np.asarray(weights, np.float64)[order]
+    c = np.cumsum(ws) - 0.5 * ws
+    return np.interp(np.asarray(q) / 100.0 * float(ws.sum()), c, xs)
+
+
 def quantile_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, n_q: int = 257,
+                   area: np.ndarray | None = None,
                    ) -> tuple[np.ndarray, list[dict[str, float]]]:
-    """A's channels mapped monotonically so their distribution on ``mask`` matches B's."""
+    """A's channels mapped monotonically so their distribution on ``mask`` matches B's: by
+    wall ``area`` when given (atlas pixels crowd towards the poles: a change there would
+    otherwise weigh in the tone curve as if it were several times its size)."""
     out = np.empty_like(a, dtype=np.float32)
     q = np.linspace(0, 100, n_q)
     info = []
+    wa = None if area is None else area[mask]
     for c in range(a.shape[2]):
-        qa = np.percentile(a[..., c][mask], q)
-        qb = np.percentile(b[..., c][mask], q)
+        qa = weighted_percentile(a[..., c][mask], wa, q)
+        qb = weighted_percentile(b[..., c][mask], wa, q)
         qa = np.maximum.accumulate(qa + np.arange(n_q) * 1e-6)  # strictly increasing
         out[..., c] = np.interp(a[..., c], qa, qb)
         slope = np.polyfit(qa[16:-16], qb[16:-16], 1)
@@ -346,7 +360,7 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
     joint = erode_mm(joint_raw, grid, cfg.edge_margin_mm)
     if joint.sum() < 100:
         joint = joint_raw
-    a_q, tone = quantile_match(a_rgb, b_rgb, joint)
+    a_q, tone = quantile_match(a_rgb, b_rgb, joint, area=grid.area)
     exclude = np.zeros_like(joint)
     info: dict[str, Any] = {"tone_match": tone}
     a_n = a_q
@@ -366,7 +380,10 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
         smooth[~joint] = 0
         x = smooth[joint]
         rng = np.random.default_rng(cfg.seed)
-        sub = x[rng.choice(len(x), min(len(x), 200000), replace=False)]
+        # the noise of the wall, not of the atlas's pixels: drawn in proportion to their wall
+        # area (pixels crowd towards the poles, a few square millimetres in hundreds of them)
+        wa = grid.area[joint].astype(np.float64)
+        sub = x[rng.choice(len(x), 200000, replace=True, p=wa / wa.sum())]
         cov = robust_covariance(sub.astype(np.float64))
         inv = np.linalg.inv(cov).astype(np.float32)
 

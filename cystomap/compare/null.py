@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from cystomap.compare.morphology import label_wrapped
+from cystomap.compare.morphology import label_wrapped, pole_neighbours
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +209,15 @@ class Candidates:
                    for t, x in zip(self.tails, stats, strict=True))
 
 
+def weighted_median(x: np.ndarray, weights: np.ndarray) -> float:
+    """The median of ``x`` weighted by ``weights`` (e.g. pixels by their wall area)."""
+    order = np.argsort(x, kind="stable")
+    c = np.cumsum(np.asarray(weights, np.float64)[order])
+    if not len(c) or c[-1] <= 0:
+        return float(np.median(x)) if len(x) else 0.0
+    return float(np.asarray(x)[order][min(int(np.searchsorted(c, 0.5 * c[-1])), len(c) - 1)])
+
+
 def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float,
                reportable: Callable[[np.ndarray, int], np.ndarray] | None = None,
                ) -> Candidates:
@@ -219,9 +228,10 @@ def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float
     units × mm²: a faint but large change, a flat low-contrast patch, whose peak the noise
     matches).
     """
-    s = sig[joint]
-    med = float(np.median(s))
-    mad = float(1.4826 * np.median(np.abs(s - med)))
+    # quantiles of the wall, not of the atlas's pixels (they crowd towards the poles)
+    s, wa = sig[joint], area[joint]
+    med = weighted_median(s, wa)
+    mad = 1.4826 * weighted_median(np.abs(s - med), wa)
     level = med + CANDIDATE_MADS * mad
     lab, n = label_wrapped(joint & (sig > level))
     flat = lab.ravel()
@@ -246,7 +256,8 @@ def candidates(sig: np.ndarray, joint: np.ndarray, area: np.ndarray, rate: float
 
 def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: Candidates,
                      rate: float) -> tuple[np.ndarray, int]:
-    """Labels (joined across the azimuth seam) of ``mask`` split into separate changes.
+    """Labels (joined across the azimuth seam and the poles) of ``mask`` split into separate
+    changes.
 
     A connected cluster can hold several changes linked by a ridge of noise (two neighbouring
     lesions, one lesion and the registration residue of a vessel beside it). Its basins of
@@ -300,6 +311,15 @@ def split_at_saddles(sig: np.ndarray, mask: np.ndarray, area: np.ndarray, null: 
             pa.append(np.minimum(x, y))
             pb.append(np.maximum(x, y))
             pv.append(np.minimum(s[r0:r1, -1][ok], s[r0 + dr:r1 + dr, 0][ok]))
+    for row in (0, h - 1):  # across the poles (a pole row's column to the opposite azimuth)
+        for ca, cb in pole_neighbours(w):
+            la, lb = ws[row, ca], ws[row, cb]
+            ok = (la > 0) & (lb > 0) & (la != lb)
+            if ok.any():
+                x, y = la[ok], lb[ok]
+                pa.append(np.minimum(x, y))
+                pb.append(np.maximum(x, y))
+                pv.append(np.minimum(s[row, ca][ok], s[row, cb][ok]))
     parent = np.arange(n_markers + 1)
 
     def find(i: int) -> int:
