@@ -154,13 +154,13 @@ def _blur_polar_caps(img: np.ndarray, out: np.ndarray, grid: Grid, sigma_mm: flo
     xy = (np.arange(-n, n + 1, dtype=np.float32) * step)
     px, py = np.meshgrid(xy, xy)
     rho, az = np.hypot(px, py), np.arctan2(py, px)
+    src = cv2.copyMakeBorder(img, 0, 0, 2, 2, cv2.BORDER_WRAP)  # columns wrap
     for sign in (1.0, -1.0):
         dist = radius * (0.5 * math.pi - sign * el)  # from this pole, along the wall
         cap = np.flatnonzero(dist < cap_mm)
         if not len(cap):
             continue
         col, row = proj.angles_to_pixel(az, sign * (0.5 * math.pi - rho / radius))
-        src = cv2.copyMakeBorder(img, 0, 0, 2, 2, cv2.BORDER_WRAP)  # columns wrap
         plane = cv2.remap(src, (col + 2).astype(np.float32), row.astype(np.float32),
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         plane = cv2.GaussianBlur(plane, (0, 0), sigma_mm / step, borderType=cv2.BORDER_REFLECT)

@@ -32,24 +32,20 @@ def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
             i = int(parent[i])
         return i
 
+    # label pairs that touch across the seam (8-connected) and across the poles
     left, right = lab[:, 0], lab[:, -1]
     h = len(left)
-    for r in range(h):
-        if left[r] == 0:
-            continue
-        for dr in (-1, 0, 1):
-            rr = r + dr
-            if 0 <= rr < h and right[rr]:
-                a, b = find(int(left[r])), find(int(right[rr]))
-                if a != b:
-                    parent[max(a, b)] = min(a, b)
+    pairs = [np.stack([left[max(0, -dr):h - max(0, dr)], right[max(0, dr):h - max(0, -dr)]], 1)
+             for dr in (-1, 0, 1)]
     for row in (lab[0], lab[-1]):
-        for ca, cb in pole_neighbours(len(row)):
-            for x, y in zip(row[ca], row[cb], strict=True):
-                if x and y:
-                    a, b = find(int(x)), find(int(y))
-                    if a != b:
-                        parent[max(a, b)] = min(a, b)
+        pairs += [np.stack([row[ca], row[cb]], 1) for ca, cb in pole_neighbours(len(row))]
+    touching = np.concatenate(pairs)
+    touching = touching[(touching[:, 0] > 0) & (touching[:, 1] > 0)
+                        & (touching[:, 0] != touching[:, 1])]
+    for x, y in np.unique(touching, axis=0):
+        a, b = find(int(x)), find(int(y))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
     roots = np.array([find(i) for i in range(n)])
     uniq, new = np.unique(roots, return_inverse=True)
     return new[lab].astype(np.int32), len(uniq) - 1
