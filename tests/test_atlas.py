@@ -9,7 +9,9 @@ a COLMAP model of the true poses and the true surface as the mesh.
 from __future__ import annotations
 
 import json
+import logging
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -471,3 +473,27 @@ def test_config_from_mapping() -> None:
         from_mapping(AtlasConfig, {"projection": "mercator"}, "atlas")
     with pytest.raises(InputError, match="exposure"):
         from_mapping(AtlasConfig, {"exposure": "auto"}, "atlas")
+
+
+def test_frame_cache_budget_does_not_change_the_atlas(full_scene: dict[str, Any],
+                                                      tmp_path: Path,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """Frames whose pyramids did not fit the budget are read again in pass 2: same atlas; and
+    an atlas coarser than the frames keeps only the coarse levels (far less memory than the
+    decoded frames)."""
+    caplog.set_level(logging.INFO, logger="cystomap.atlas.paint")
+    reread = build_atlas(full_scene["sfm"], full_scene["pre"], full_scene["mesh"],
+                         tmp_path / "reread", AtlasConfig(width=256, height=128, frame_cache_mb=0))
+    for name in ("atlas.png", "coverage.png", "texture.png"):
+        a = cv2.imread(str(full_scene["out"] / name), cv2.IMREAD_UNCHANGED)
+        b = cv2.imread(str(reread / name), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(a, b), name
+    assert "0 frame pyramids kept" in caplog.text
+    caplog.clear()
+    build_atlas(full_scene["sfm"], full_scene["pre"], full_scene["mesh"], tmp_path / "kept",
+                AtlasConfig(width=64, height=32, model=False))  # frames ~4x finer than it
+    kept = re.search(r"(\d+) frame pyramids kept \(([\d.]+) MB\)", caplog.text)
+    assert kept is not None and int(kept.group(1)) == 28
+    frame = cv2.imread(str(next((full_scene["pre"] / "color").glob("*.png"))))
+    decoded_mb = 28 * frame.shape[0] * frame.shape[1] * 4 / 2**20
+    assert float(kept.group(2)) < decoded_mb / 3, (kept.group(2), decoded_mb)

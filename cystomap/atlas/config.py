@@ -66,8 +66,9 @@ class AtlasConfig:
     coverage_max_views: int = setting(20, ">= 1")
     # Frames processed concurrently (threads; numpy/OpenCV/open3d release the GIL).
     threads: int = setting(2, "[1, 64]")
-    # Decoded frames are kept in memory between the two passes when they fit in this many MB
-    # (else they are read twice).
+    # Each frame's image pyramid is kept in memory between the two passes, from the finest
+    # level its blending samples (a frame whose pixels are finer than the atlas's keeps only
+    # the coarser levels), while the kept total fits in this many MB; the rest are read twice.
     frame_cache_mb: int = setting(1024, ">= 0")
     # Atlas frame: "anatomical" = about the session's anatomical frame (cystomap.anatomy: neck
     # at the bottom, dome at the top, patient's right on the left), "model" = the SfM frame's

@@ -39,6 +39,8 @@ from cystomap.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
+SURVEY_LEVELS = 6  # pyramid levels below the frame that pass 1's coarse samples may use
+
 
 @dataclass
 class PaintResult:
@@ -76,37 +78,98 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             bgra[..., 3] = glint_weight(img, mask, cfg.glint_rel)
         return bgra
 
-    # decoded frames (with their glint weight) are kept for pass 2 when they fit the budget
-    cache = mask.size * 4 * len(views) <= cfg.frame_cache_mb * 2**20
+    def footprint(i: int, depth: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray],
+                                                     np.ndarray, np.ndarray] | None:
+        """Atlas pixels frame ``i`` shows, their view geometry, and the pyramid level of each
+        one's footprint (``level``) and of its coarse cell's (``coarse``); None if none."""
+        view = views[i]
+        px = np.sort(wall.candidates(view))  # raster order: cache-friendly gathers/scatters
+        if len(px) == 0:
+            return None
+        o = geo.observe(view, wall, px, depth)
+        ok = o["ok"]
+        if not ok.any():
+            return None
+        px = px[ok]
+        oo = {k: a[ok] for k, a in o.items()}
+        # footprint of an atlas pixel in image pixels → pyramid level (anti-aliasing)
+        foot = np.float32(view.K[0, 0]) * np.sqrt(pix_area[px] * np.clip(oo["cos"], 0.05, 1)) \
+            / oo["dist"]
+        level = np.log2(np.maximum(foot, 1.0))
+        coarse = np.log2(np.maximum(np.float32(view.K[0, 0]) * cell_size_px[px] / oo["dist"],
+                                    1.0))
+        return px, oo, level, coarse
 
-    # ---- pass 1: depth maps, sharpness, coarse observations for the exposure model
+    def blend_pyramid(full: list[np.ndarray], level: np.ndarray,
+                      coarse: np.ndarray) -> list[np.ndarray | None]:
+        """The levels of the frame's pyramid ``full`` that pass 2 samples (as many as its
+        footprints need); those finer than any it samples are None, so that a frame seen from
+        afar keeps only the coarse levels it is blended from."""
+        n = int(np.ceil(max(level.max(), coarse.max()))) + 2
+        pyr: list[np.ndarray | None] = list(full[:n])
+        finest = int(np.clip(np.rint(min(level.min(), coarse.min())), 0, len(pyr) - 1))
+        return [None] * finest + pyr[finest:]
+
+    def levels_needed(fp: tuple[Any, ...] | None) -> int:
+        return SURVEY_LEVELS if fp is None else max(
+            SURVEY_LEVELS, int(np.ceil(max(fp[2].max(), fp[3].max()))) + 1)
+
+    # per pixel: its coarse cell (for the reference brightness and the cell footprint)
+    w_atlas = cfg.width
+    nbx = -(-w_atlas // cfg.block)
+    pix = np.arange(n_px)
+    cell_of = ((pix // w_atlas) // cfg.block) * nbx + (pix % w_atlas) // cfg.block
+    cell_size_px = (np.where(np.isfinite(wall.cell_radius), wall.cell_radius, 0) * 1.4)[cell_of]
+    cell_size_px = cell_size_px.astype(np.float32)
+    del pix
+    pix_area = wall.area.astype(np.float32)
+
+    # ---- pass 1: depth maps, sharpness, coarse observations for the exposure model; each
+    # frame's pyramid from the finest level pass 2 samples is kept while within the budget
     def survey(i: int) -> dict[str, Any]:
         view = views[i]
         img = read(view)
         depth = geo.depth_map(view, rays)
         out: dict[str, Any] = {"depth": depth, "sharp": sharpness(img, mask)}
         img4 = with_glint_weight(img)
-        if cache:
-            out["image"] = img4
+        fp = footprint(i, depth)
+        full = pyramid(img4, levels_needed(fp))
+        if fp is not None:
+            out["pyramid"] = blend_pyramid(full, fp[2], fp[3])
         o = geo.observe(view, wall, cell_px, depth)
         ok = o["ok"]
         if ok.any():
             oo = {k: a[ok] for k, a in o.items()}
             level = np.log2(np.maximum(view.K[0, 0] * cell_size[ok] / oo["dist"], 1.0))
-            bgrw = sample_mip(pyramid(img4, 6), oo["u"], oo["v"], level)
+            bgrw = sample_mip(full[:SURVEY_LEVELS + 1], oo["u"], oo["v"], level)
             grey = (bgrw[:, 0] + bgrw[:, 1] + bgrw[:, 2]) / 3
             out.update(cell=cells[ok], obs=oo, logi=np.log(grey + 1.0),
                        w=view_weights(oo, view, settings, 1.0, 1.0) * bgrw[:, 3] / 255.0)
         return out
 
+    budget = cfg.frame_cache_mb * 2**20
+    cached_bytes = 0
+
+    def keep_within_budget(sv: dict[str, Any]) -> dict[str, Any]:
+        nonlocal cached_bytes
+        if "pyramid" in sv:
+            size = sum(a.nbytes for a in sv["pyramid"] if a is not None)
+            if cached_bytes + size > budget:
+                del sv["pyramid"]  # read again in pass 2
+            else:
+                cached_bytes += size
+        return sv
+
     t0 = time.perf_counter()
-    surveys = list(ordered_map(survey, range(len(views)), cfg.threads))
+    surveys = [keep_within_budget(sv)
+               for sv in ordered_map(survey, range(len(views)), cfg.threads)]
     depths = [sv["depth"] for sv in surveys]
-    images = [sv.pop("image", None) for sv in surveys]
+    images = [sv.pop("pyramid", None) for sv in surveys]
     sharp = np.array([sv["sharp"] for sv in surveys])
     observed = [i for i, sv in enumerate(surveys) if "cell" in sv]
-    log.info("pass 1 (depth maps, exposure samples) over %d frames: %.1f s", len(views),
-             time.perf_counter() - t0)
+    log.info("pass 1 (depth maps, exposure samples) over %d frames: %.1f s; %d frame pyramids "
+             "kept (%.1f MB)", len(views), time.perf_counter() - t0,
+             sum(p is not None for p in images), cached_bytes / 2**20)
     dist_ref = (float(np.median(np.concatenate([surveys[i]["obs"]["dist"] for i in observed])))
                 if observed else 1.0)
     med_sharp = float(np.median(sharp[sharp > 0])) if (sharp > 0).any() else 1.0
@@ -132,41 +195,20 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             ref_px = cell_reference(o_cell, o_frame, o_logi, o_cov, o_w, photometry,
                                     n_cells).astype(np.float32)
     del surveys
-    # per pixel: its coarse cell (for the reference brightness and the cell footprint)
-    w_atlas = cfg.width
-    nbx = -(-w_atlas // cfg.block)
-    pix = np.arange(n_px)
-    cell_of = ((pix // w_atlas) // cfg.block) * nbx + (pix % w_atlas) // cfg.block
-    cell_size_px = (np.where(np.isfinite(wall.cell_radius), wall.cell_radius, 0) * 1.4)[cell_of]
-    cell_size_px = cell_size_px.astype(np.float32)
-    del pix
-
     # ---- pass 2: blend
-    pix_area = wall.area.astype(np.float32)
 
     def colours(i: int) -> tuple[np.ndarray, ...] | None:
         view = views[i]
-        img4 = images[i]
+        pyr = images[i]
         images[i] = None  # free as we go
-        px = np.sort(wall.candidates(view))  # raster order: cache-friendly gathers/scatters
-        if len(px) == 0:
+        fp = footprint(i, depths[i])
+        if fp is None:
             return None
-        o = geo.observe(view, wall, px, depths[i])
-        ok = o["ok"]
-        if not ok.any():
-            return None
-        if img4 is None:
-            img4 = with_glint_weight(read(view))
-        px = px[ok]
-        oo = {k: a[ok] for k, a in o.items()}
+        px, oo, level, coarse = fp
+        if pyr is None:
+            pyr = blend_pyramid(pyramid(with_glint_weight(read(view)), levels_needed(fp)), level,
+                                coarse)
         wt = view_weights(oo, view, settings, float(sharp_rel[i]), dist_ref)
-        # footprint of an atlas pixel in image pixels → pyramid level (anti-aliasing)
-        foot = np.float32(view.K[0, 0]) * np.sqrt(pix_area[px] * np.clip(oo["cos"], 0.05, 1)) \
-            / oo["dist"]
-        level = np.log2(np.maximum(foot, 1.0))
-        coarse = np.log2(np.maximum(np.float32(view.K[0, 0]) * cell_size_px[px] / oo["dist"],
-                                    1.0))
-        pyr = pyramid(img4, int(np.ceil(max(level.max(), coarse.max()))) + 1)
         bgrw = sample_mip(pyr, oo["u"], oo["v"], level)
         corr = photometry.correction(i, oo, view)
         bgr = bgrw[:, :3] * corr[:, None]

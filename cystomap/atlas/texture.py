@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,15 +127,22 @@ def pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
     return pyr
 
 
-def sample_mip(pyr: list[np.ndarray], u: np.ndarray, v: np.ndarray,
+def sample_mip(pyr: Sequence[np.ndarray | None], u: np.ndarray, v: np.ndarray,
                level: np.ndarray) -> np.ndarray:
-    """Bilinear samples from the pyramid level nearest to each sample's footprint ``level``."""
+    """Bilinear samples from the pyramid level nearest to each sample's footprint ``level``
+    (levels never sampled may be None)."""
     lv = np.clip(np.rint(level), 0, len(pyr) - 1).astype(np.int8)
-    out = np.empty((len(u), pyr[0].shape[2] if pyr[0].ndim == 3 else 1), np.float32)
+    top = pyr[-1]
+    if top is None:
+        raise ValueError("the pyramid's coarsest level is missing")
+    out = np.empty((len(u), top.shape[2] if top.ndim == 3 else 1), np.float32)
     for lvl in np.unique(lv):
         idx = np.flatnonzero(lv == lvl)
         s = np.float32(0.5**lvl)  # pyrDown halves; pixel centres: x_l = (x + 0.5) / 2^l - 0.5
-        out[idx] = sample_bilinear(pyr[int(lvl)], (u[idx] + 0.5) * s - 0.5,
+        img = pyr[int(lvl)]
+        if img is None:
+            raise ValueError(f"pyramid level {lvl} was dropped but is sampled")
+        out[idx] = sample_bilinear(img, (u[idx] + 0.5) * s - 0.5,
                                    (v[idx] + 0.5) * s - 0.5)
     return out
 
