@@ -57,8 +57,11 @@ misaligned gives a thin, long difference; phantom lesions measured 1.0-1.7, cut 
 2.8, vessel residues 4-6), and it is not at the
 bladder neck: the scope enters through it, so registered cameras at or beyond the wall point
 to it, and the mesh closes it with a cap whose texture (the urethra seen through it) differs
-between sessions; regions centred within ``opening_deg`` of such a camera's direction are
-dropped (lesions at the neck are therefore not reported when the entry was registered).
+between sessions; the wall within ``opening_deg`` of such a camera's direction (the cap) is
+cut out of the accepted clusters, and regions still centred within it are dropped (lesions at
+the neck are therefore not reported when the entry was registered; a lesion beside it, joined
+to the cap's difference in one cluster, is measured without the cap rather than dropped with
+it).
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
 ``local_delta_e``). Photometric residue the illumination matching leaves
@@ -104,6 +107,7 @@ import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid
+from cystomap.compare.grid import cone_mask
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
 from cystomap.compare.null import (
     CANDIDATE_MADS,
@@ -357,6 +361,8 @@ class _Checks:
         grid: Grid = diff.grid
         self.diff, self.cfg, self.proj, self.rays, self.verify = diff, cfg, proj_full, rays, verify
         self.openings = openings if openings is not None else np.zeros((0, 3))
+        # the neck's cap: not a region's wall (cut out of the clusters and of the outlines)
+        self.cap = cone_mask(grid, self.openings, cfg.opening_deg)
         self.min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
         # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
         # either side shrink by the morphological opening
@@ -411,7 +417,8 @@ class _Checks:
         sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
         # the outline stays off the other regions' pixels (a neighbour split off at a saddle)
         sub_lab = lab[r_lo:r_hi][:, c_idx]
-        half = sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
+        half = (sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
+                & ~self.cap[r_lo:r_hi][:, c_idx])
         core = np.zeros_like(half)
         core[rows - r_lo, ucols - c_lo] = True
         _, half_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
@@ -542,8 +549,10 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
            ) -> tuple[list[Region], dict[str, Any]]:
     """Changed regions of ``diff`` measured on session B's wall (sorted by score).
 
-    ``openings``: unit directions (from B's barycentre) of the bladder neck; regions whose
-    centroid lies within ``cfg.opening_deg`` of one are dropped.
+    ``openings``: unit directions (from B's barycentre) of the bladder neck; the wall within
+    ``cfg.opening_deg`` of one (the neck's cap) is cut out of the accepted clusters, and
+    regions whose centroid still lies within that angle are dropped. The null sample is
+    unchanged (the cap's clusters in it are not reportable either way).
 
     ``verify(region_pixels, ring_pixels)`` (flat grid indices) may return
     ``{"inconsistency": value}``; regions above ``cfg.max_inconsistency`` are dropped (see
@@ -564,6 +573,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         k = _disc(r_px)
         cand = _morph(cand, cv2.MORPH_CLOSE, k)
         cand = _morph(cand, cv2.MORPH_OPEN, k) & diff.joint
+    # the neck's cap is not a region's wall: cut out of the clusters (not only regions centred
+    # on it dropped), so that a change beside the neck joined to the cap's difference is
+    # measured on its own instead of being dropped with it (dev pair 308's 16.9 mm CIS)
+    cap = checks.cap
+    if cap.any():
+        cand &= ~cap
+        info["neck_cap_cut_share"] = float(grid.area[cap & diff.joint].sum()
+                                           / max(float(grid.area[diff.joint].sum()), 1e-9))
     # neighbouring changes in one cluster are split at the saddles of the significance
     lab, n = split_at_saddles(sig, cand, grid.area, null, cfg.false_alarm_rate)
     if (cfg.merge_mm > 0 or checks.gap_kernel is not None) and n > 1:

@@ -163,8 +163,10 @@ class CompareConfig:
     min_luminance_a: float = setting(0.35, "[0, 1)")
     # the bladder neck: registered cameras at or beyond the wall (the scope entering, either
     # session) point to it; the mesh caps the opening and the texture there (the urethra
-    # seen through the cap) differs between sessions. Regions centred within this angle
-    # (degrees, from B's barycentre) of such a camera's direction are dropped (0 = off)
+    # seen through the cap) differs between sessions. The wall within this angle (degrees,
+    # from B's barycentre) of such a camera's direction is cut out of the changed clusters
+    # (a lesion beside the neck is not joined to the cap) and regions still centred within
+    # it are dropped (0 = off)
     opening_deg: float = setting(30.0, "[0, 90)")
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a
     # region whose colours spread across the frames that see it more than this many times

@@ -218,3 +218,16 @@ def erode_mm(mask: np.ndarray, grid: Grid, radius_mm: float) -> np.ndarray:
     # a pixel survives when the mask covers (almost) all of a Gaussian of sigma r/2 around it
     cover = blur_mm(mask.astype(np.float32), grid, radius_mm / 2.0)
     return mask & (cover > 0.977)  # 2 sigma of a 1-D edge profile
+
+
+def cone_mask(grid: Grid, directions: np.ndarray, half_angle_deg: float) -> np.ndarray:
+    """(H, W) bool: wall pixels whose direction from B's barycentre lies within
+    ``half_angle_deg`` of any of ``directions`` (k, 3; unit vectors in B's frame)."""
+    directions = np.asarray(directions, np.float64).reshape(-1, 3)
+    out = np.zeros(grid.shape, bool)
+    if not len(directions) or half_angle_deg <= 0:
+        return out
+    v = np.nan_to_num(grid.points - grid.proj.barycentre)
+    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
+    cos_max = np.max(v.reshape(-1, 3) @ directions.T, axis=1).reshape(grid.shape)
+    return grid.hit & (cos_max > math.cos(math.radians(half_angle_deg)))
