@@ -100,19 +100,18 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
                                     1.0))
         return px, oo, level, coarse
 
+    def blend_levels(level: np.ndarray, coarse: np.ndarray) -> int:
+        """Pyramid levels below the frame that pass 2 samples from (its coarsest footprint)."""
+        return int(np.ceil(max(level.max(), coarse.max()))) + 1
+
     def blend_pyramid(full: list[np.ndarray], level: np.ndarray,
                       coarse: np.ndarray) -> list[np.ndarray | None]:
-        """The levels of the frame's pyramid ``full`` that pass 2 samples (as many as its
-        footprints need); those finer than any it samples are None, so that a frame seen from
-        afar keeps only the coarse levels it is blended from."""
-        n = int(np.ceil(max(level.max(), coarse.max()))) + 2
-        pyr: list[np.ndarray | None] = list(full[:n])
+        """The levels of the frame's pyramid ``full`` that pass 2 samples; those finer than
+        any it samples are None, so that a frame seen from afar keeps only the coarse levels
+        it is blended from."""
+        pyr: list[np.ndarray | None] = list(full[:blend_levels(level, coarse) + 1])
         finest = int(np.clip(np.rint(min(level.min(), coarse.min())), 0, len(pyr) - 1))
         return [None] * finest + pyr[finest:]
-
-    def levels_needed(fp: tuple[Any, ...] | None) -> int:
-        return SURVEY_LEVELS if fp is None else max(
-            SURVEY_LEVELS, int(np.ceil(max(fp[2].max(), fp[3].max()))) + 1)
 
     # per pixel: its coarse cell (for the reference brightness and the cell footprint)
     w_atlas = cfg.width
@@ -133,7 +132,8 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         out: dict[str, Any] = {"depth": depth, "sharp": sharpness(img, mask)}
         img4 = with_glint_weight(img)
         fp = footprint(i, depth)
-        full = pyramid(img4, levels_needed(fp))
+        full = pyramid(img4, SURVEY_LEVELS if fp is None
+                       else max(SURVEY_LEVELS, blend_levels(fp[2], fp[3])))
         if fp is not None:
             out["pyramid"] = blend_pyramid(full, fp[2], fp[3])
         o = geo.observe(view, wall, cell_px, depth)
@@ -164,12 +164,12 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
     surveys = [keep_within_budget(sv)
                for sv in ordered_map(survey, range(len(views)), cfg.threads)]
     depths = [sv["depth"] for sv in surveys]
-    images = [sv.pop("pyramid", None) for sv in surveys]
+    pyramids = [sv.pop("pyramid", None) for sv in surveys]
     sharp = np.array([sv["sharp"] for sv in surveys])
     observed = [i for i, sv in enumerate(surveys) if "cell" in sv]
     log.info("pass 1 (depth maps, exposure samples) over %d frames: %.1f s; %d frame pyramids "
              "kept (%.1f MB)", len(views), time.perf_counter() - t0,
-             sum(p is not None for p in images), cached_bytes / 2**20)
+             sum(p is not None for p in pyramids), cached_bytes / 2**20)
     dist_ref = (float(np.median(np.concatenate([surveys[i]["obs"]["dist"] for i in observed])))
                 if observed else 1.0)
     med_sharp = float(np.median(sharp[sharp > 0])) if (sharp > 0).any() else 1.0
@@ -199,15 +199,15 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
 
     def colours(i: int) -> tuple[np.ndarray, ...] | None:
         view = views[i]
-        pyr = images[i]
-        images[i] = None  # free as we go
+        pyr = pyramids[i]
+        pyramids[i] = None  # free as we go
         fp = footprint(i, depths[i])
         if fp is None:
             return None
         px, oo, level, coarse = fp
         if pyr is None:
-            pyr = blend_pyramid(pyramid(with_glint_weight(read(view)), levels_needed(fp)), level,
-                                coarse)
+            pyr = blend_pyramid(pyramid(with_glint_weight(read(view)),
+                                        blend_levels(level, coarse)), level, coarse)
         wt = view_weights(oo, view, settings, float(sharp_rel[i]), dist_ref)
         bgrw = sample_mip(pyr, oo["u"], oo["v"], level)
         corr = photometry.correction(i, oo, view)

@@ -107,7 +107,7 @@ import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid
-from cystomap.compare.grid import cone_mask
+from cystomap.compare.grid import cone_mask, within_cone
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
 from cystomap.compare.null import (
     CANDIDATE_MADS,
@@ -489,8 +489,7 @@ class _Checks:
         t_hit, _ = self.rays.cast(self.proj.barycentre, d[None])
         if np.isfinite(t_hit[0]):
             centroid = self.proj.barycentre + t_hit[0] * d
-        if len(self.openings) and cfg.opening_deg > 0 and float(
-                (self.openings @ d).max()) > math.cos(math.radians(cfg.opening_deg)):
+        if within_cone(d, self.openings, cfg.opening_deg):
             log.debug("changes: region at %s: within %g deg of the bladder neck, where the "
                       "scope entered", np.round(centroid, 1).tolist(), cfg.opening_deg)
             return "near_neck", None

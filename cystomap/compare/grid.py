@@ -220,14 +220,16 @@ def erode_mm(mask: np.ndarray, grid: Grid, radius_mm: float) -> np.ndarray:
     return mask & (cover > 0.977)  # 2 sigma of a 1-D edge profile
 
 
+def within_cone(dirs: np.ndarray, axes: np.ndarray, half_angle_deg: float) -> np.ndarray:
+    """bool per unit direction ``dirs`` (..., 3): within ``half_angle_deg`` of any of ``axes``
+    (k, 3 unit vectors); all False when there is no axis or the angle is 0."""
+    axes = np.asarray(axes, np.float64).reshape(-1, 3)
+    if not len(axes) or half_angle_deg <= 0:
+        return np.zeros(np.shape(dirs)[:-1], bool)
+    return (np.asarray(dirs) @ axes.T).max(axis=-1) > math.cos(math.radians(half_angle_deg))
+
+
 def cone_mask(grid: Grid, directions: np.ndarray, half_angle_deg: float) -> np.ndarray:
     """(H, W) bool: wall pixels whose direction from B's barycentre lies within
     ``half_angle_deg`` of any of ``directions`` (k, 3; unit vectors in B's frame)."""
-    directions = np.asarray(directions, np.float64).reshape(-1, 3)
-    out = np.zeros(grid.shape, bool)
-    if not len(directions) or half_angle_deg <= 0:
-        return out
-    v = np.nan_to_num(grid.points - grid.proj.barycentre)
-    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
-    cos_max = np.max(v.reshape(-1, 3) @ directions.T, axis=1).reshape(grid.shape)
-    return grid.hit & (cos_max > math.cos(math.radians(half_angle_deg)))
+    return grid.hit & within_cone(grid.proj.grid_directions(), directions, half_angle_deg)
