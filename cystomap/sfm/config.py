@@ -209,10 +209,10 @@ class SfmConfig:
     # a model holding fewer than this share of the frames, one a self-check flags, or a failed
     # mapping is mapped again with features at twice max_image_size (at most the lit field's
     # size) when they were detected below it; the better model is kept (unflagged first, then
-    # more frames). Sparse models at 640 px can stop growing where the chain is unbroken
-    # (held-out phantom seed 4, 1280x720 mp4v: 47 of 124 frames, 2.1 mm trajectory error;
-    # mapped again at 1280 px: 124 of 124, 0.07 mm, for about 4x the first run's CPU). 0 = never
-    retry_registered_share: float = setting(0.95, "[0, 1]")
+    # more frames). 0 = never (the default, until it is shown not to hurt: on held-out phantom
+    # seeds, 1280x720 mp4v, it mended clean:4 (47 -> 124 of 124 frames, 2.1 -> 0.07 mm) but
+    # kept a worse model on glints:4 (78 of 124 frames, 1.4 mm; 113, 0.46 mm without it))
+    retry_registered_share: float = setting(0.0, "[0, 1]")
 
     # --- metric scale ---
     # statistical outlier removal of points before measuring the extent or volume:
