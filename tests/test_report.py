@@ -491,3 +491,17 @@ def test_sfm_self_check_in_words():
                                    "weakest_seam_share": 1.0, "seams_weak": [], "consistent": True,
                                    "rotation": {**rot, "flagged": False}})
     assert "55 loop pairs with parallax show no rotation drift" in text and not weak
+
+
+def test_sfm_attempts_in_words():
+    from cystomap.report.data import attempts_text
+
+    runs = [{"max_image_size": 640, "registered": 47, "flagged": False, "failed": False},
+            {"max_image_size": 1280, "registered": 124, "flagged": False, "failed": False}]
+    assert attempts_text({"kept": 1, "runs": runs}) == (
+        "mapped twice (47 frames at 640 px, then 124 frames at 1280 px); kept the second")
+    runs[1] = {**runs[1], "failed": True}
+    runs[0] = {**runs[0], "flagged": True}
+    assert attempts_text({"kept": 0, "runs": runs}) == (
+        "mapped twice (47 frames, flagged at 640 px, then failed at 1280 px); kept the first")
+    assert attempts_text({"kept": 0, "runs": runs[:1]}) is None

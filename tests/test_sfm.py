@@ -274,6 +274,83 @@ def test_failed_run_keeps_earlier_output(tmp_path):
     shutil.rmtree(out)
 
 
+def test_short_model_is_mapped_again_with_finer_features(small_session, tmp_path):
+    """Features at a quarter of the frame (160 px of 640) leave the model short or flagged;
+    the stage maps again at 320 px, keeps that model and says so (cystomap/sfm/retry.py)."""
+    from cystomap.evaluate import evaluate_session, load_truth
+
+    truth_dir, pre = small_session
+    truth = load_truth(truth_dir)
+    n = truth.n_frames
+    out = tmp_path / "sfm"
+    cfg = from_mapping(SfmConfig, {"max_image_size": 160, "densify_corners": 0,
+                                   "retry_registered_share": 0.95}, "sfm")
+    run_sfm(pre, out, cfg, extent_mm=truth.extent_mm)
+    q = json.loads((out / "quality.json").read_text())
+    a = q["attempts"]
+    first, second = a["runs"]
+    # the premise: the coarse mapping fell short of the share or was flagged (measured
+    # 119/124, flagged); the finer one holds the frames, unflagged, and is the one kept
+    assert first["max_image_size"] == 160 and (first["flagged"] or first["failed"]
+                                               or first["registered"] < 0.95 * n), a
+    # (measured: 124/124 at 320 px, also flagged for rotation drift, so kept for its frames)
+    assert second["max_image_size"] == 320 and second["registered"] > first["registered"], a
+    assert a["kept"] == 1 and q["registered"] >= 0.95 * n, a
+    assert q["cpu_s"]["attempts_total"] == pytest.approx(first["cpu_s"] + second["cpu_s"], abs=0.01)
+    traj = evaluate_session(truth_dir, out)["trajectory"]
+    assert traj["rmse_mm"] < 0.5 and traj["scale_error"] < 0.03, traj
+    # the second mapping was written beside the outputs and moved in: nothing is left beside
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sfm"]
+
+
+def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
+    """The retry's bookkeeping, with stand-in mappings: a failed or short first run is
+    replaced by a better second; a worse second is dropped; both failing raise one error that
+    names both, with the second's pieces beside the first's."""
+    from cystomap.sfm import retry
+
+    def fake(results: dict[int, object]):
+        def attempt(out: Path, cfg: SfmConfig) -> dict:
+            got = results[cfg.max_image_size]
+            if isinstance(got, int):
+                out.mkdir(parents=True)
+                q = {"frames_in": 100, "registered": got, "consistency": {"consistent": True},
+                     "time_s": {"total": 1.0}, "cpu_s": {"total": 1.0}}
+                (out / "quality.json").write_text(json.dumps(q))
+                return q
+            failed = out.with_name(out.name + ".failed")
+            failed.mkdir(parents=True)
+            (failed / "quality.json").write_text(json.dumps({"model_sizes": [7]}))
+            raise StageError(f"sfm: only 7 frames; details in {failed}")
+        return attempt
+
+    def failed_dir(p: Path) -> Path:
+        return p.with_name(p.name + ".failed")
+
+    cfg = SfmConfig(max_image_size=640, retry_registered_share=0.95)
+    for results, kept, registered in (({640: 60, 1280: 98}, 1, 98), ({640: 90, 1280: 80}, 0, 90),
+                                      ({640: "fail", 1280: 97}, 1, 97), ({640: 96}, None, 96)):
+        root = tmp_path / f"case{len(list(tmp_path.iterdir()))}"
+        root.mkdir()
+        out = retry.map_with_retry(fake(results), root / "sfm", cfg, 0.5, failed_dir)
+        q = json.loads((out / "quality.json").read_text())
+        assert q["registered"] == registered
+        assert q.get("attempts", {}).get("kept") == kept, q
+        assert sorted(p.name for p in root.iterdir()) == ["sfm"], results
+    # at the lit field's full size already, or retry off: one mapping, its error as it was
+    with pytest.raises(StageError, match="only 7 frames"):
+        retry.map_with_retry(fake({640: "fail"}), tmp_path / "full" / "sfm", cfg, 1.0, failed_dir)
+    off = SfmConfig(max_image_size=640)  # the default: never
+    out = retry.map_with_retry(fake({640: 10}), tmp_path / "off" / "sfm", off, 0.5, failed_dir)
+    assert "attempts" not in json.loads((out / "quality.json").read_text())
+    both = tmp_path / "both"
+    with pytest.raises(StageError, match=r"Mapped again with features at 1280 px") as err:
+        retry.map_with_retry(fake({640: "fail", 1280: "fail"}), both / "sfm", cfg, 0.5, failed_dir)
+    assert str(both / "sfm.failed" / "retry") in str(err.value)
+    assert sorted(p.name for p in both.iterdir()) == ["sfm.failed"]
+    assert (both / "sfm.failed" / "retry" / "quality.json").is_file()
+
+
 def _turn_from(rec: object, names: list[str], first: int, degrees: float,
                shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
     """Turn the frames of ``rec`` from the ``first``-th on by ``degrees`` about y (and shift)."""

@@ -124,6 +124,10 @@ def run_ours(pre: Path, out: Path, extent_mm: float) -> dict[str, float]:
     t = dict(q["time_s"])
     t["other"] = t["total"] - sum(t.get(s, 0.0) for s in STEPS)
     t["cpu"] = q["cpu_s"]["total"]
+    if "attempts_total" in t:  # mapped twice (cystomap/sfm/retry.py): both runs count
+        t["other"] += t["attempts_total"] - t["total"]
+        t["total"], t["cpu"] = t.pop("attempts_total"), q["cpu_s"]["attempts_total"]
+    t["attempts"] = float(len(q.get("attempts", {}).get("runs", [None])))
     return t
 
 
@@ -179,7 +183,8 @@ def score(truth: Path, sfm: Path) -> dict[str, Any]:
 
 COLUMNS = ("session", "method", "runs", "frames", "registered", "models", "largest_model",
            "rmse_mm", "max_error_mm", "rotation_error_deg", "reprojection_px", "scale_error_pct",
-           "points", "t_features", "t_pairs", "t_matching", "t_mapping", "t_other", "t_total",
+           "points", "attempts", "t_features", "t_pairs", "t_matching", "t_mapping", "t_other",
+           "t_total",
            "cpu_total", "speedup", "speedup_cpu")
 
 
@@ -224,6 +229,8 @@ def bench(work: Path, sessions: Sequence[str], repeats: int, baseline_repeats: i
                 row[f"t_{step}"] = statistics.median(vals) if vals else None
             cpus = [t["cpu"] for t in times if "cpu" in t]
             row["cpu_total"] = statistics.median(cpus) if cpus else None
+            if method == "cystomap" and times:  # 2: mapped again with finer features
+                row["attempts"] = int(max(t.get("attempts", 1.0) for t in times))
             totals[method] = (row["t_total"] or float("nan"), row["cpu_total"] or float("nan"))
             rows.append(row)
         base = totals.get("pycolmap defaults")
@@ -256,7 +263,8 @@ def write_tables(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) ->
         "share the cores, so wall times vary; cpu_total = CPU seconds of all threads). Times in "
         "seconds, medians over the runs; rmse/max error of camera centres after Sim(3) "
         "alignment (mm); rotation error median (deg); scale error of the metric model (%); "
-        "speedup = defaults' total / this row's total (wall and CPU).",
+        "speedup = defaults' total / this row's total (wall and CPU). attempts 2: the stage "
+        "mapped again with finer features (cystomap/sfm/retry.py); both runs are in the times.",
         "",
         "| " + " | ".join(COLUMNS) + " |",
         "| " + " | ".join("---" for _ in COLUMNS) + " |",

@@ -154,6 +154,24 @@ def consistency_text(c: dict[str, Any]) -> tuple[str, bool]:
     return "; ".join(parts) or "not checked", weak or c.get("consistent") is False
 
 
+def attempts_text(a: dict[str, Any]) -> str | None:
+    """The SfM stage's mappings in words when it mapped more than once (sfm/quality.json
+    "attempts", cystomap/sfm/retry.py): "mapped twice (47 frames at 640 px, then ...)"."""
+    runs = [r for r in a.get("runs", []) if isinstance(r, dict)]
+    if len(runs) < 2:
+        return None
+
+    def one(r: dict[str, Any]) -> str:
+        what = "failed" if r.get("failed") else f"{_int(r.get('registered'))} frames"
+        flag = ", flagged" if r.get("flagged") else ""
+        return f"{what}{flag} at {_int(r.get('max_image_size'))} px"
+
+    kept = _int(a.get("kept"))
+    which = {0: "the first", 1: "the second"}.get(kept or 0, f"run {kept}")
+    return (f"mapped {'twice' if len(runs) == 2 else f'{len(runs)} times'} ("
+            + ", then ".join(one(r) for r in runs) + f"); kept {which}")
+
+
 def load_session(inputs: SessionInputs) -> SessionSummary:
     s = SessionSummary(inputs.name, inputs.date, inputs=inputs)
     frames = read_json(Path(inputs.frames) / "frames.json")
@@ -173,6 +191,10 @@ def load_session(inputs: SessionInputs) -> SessionSummary:
     c = quality.get("consistency") if isinstance(quality.get("consistency"), dict) else {}
     if c:
         s.consistency, s.consistency_weak = consistency_text(c)
+    a = quality.get("attempts") if isinstance(quality.get("attempts"), dict) else {}
+    tried = attempts_text(a) if a else None
+    if tried:
+        s.consistency = f"{s.consistency}; {tried}" if s.consistency else tried
     s.coverage_percent = _num(atlas.get("coverage_percent"))
     cov = atlas.get("coverage") if isinstance(atlas.get("coverage"), dict) else {}
     s.views_median = _num(cov.get("views_median"))

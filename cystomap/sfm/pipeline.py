@@ -8,7 +8,8 @@ pairs; otherwise (a fold, or repeated texture) mapped again from the sequential 
 loop pairs used only where their geometry agrees with that model (cystomap/sfm/consistency.py);
 densification with corner tracks aligned on the full-size frames; a final
 filter-and-adjust pass; a self-check that fails a folded model; metric scale from the known
-extent or volume of the bladder.
+extent or volume of the bladder. A model that is short, flagged or failed is mapped once more
+with features twice as fine (cystomap/sfm/retry.py).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from cystomap.sfm import (
     matching,
     pairs,
     quality,
+    retry,
     rotation,
     scale,
 )
@@ -97,7 +99,9 @@ def run_sfm(
     ``preprocessed_dir`` holds ``enhanced/`` (features), ``color/`` (point colours),
     ``mask.png`` and ``camera.json``. ``out_dir`` receives a COLMAP binary model
     (``cameras.bin``, ``images.bin``, ``points3D.bin``; in mm when ``extent_mm`` or
-    ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing.
+    ``volume_ml`` is known), ``points.ply`` and ``quality.json``, all or nothing. A short,
+    flagged or failed model is mapped again with finer features when they were detected below
+    the lit field's size, and the better model kept (cystomap/sfm/retry.py).
 
     Raises :class:`StageError` when too few frames register (the message says how many and
     why) or the model contradicts the matches that link its parts (a fold), and
@@ -109,6 +113,17 @@ def run_sfm(
     for value, name in ((extent_mm, "extent_mm"), (volume_ml, "volume_ml")):
         if value is not None and not (value > 0 and math.isfinite(value)):
             raise InputError(f"{name} must be a positive number, got {value!r}")
+    camera = Camera.load(pre / "camera.json")
+    mask = pre / "mask.png" if (pre / "mask.png").is_file() else None
+    working = feat.working_scale(camera, cfg, feat.lit_extent(mask, camera))
+    return retry.map_with_retry(
+        lambda out, c: _attempt(pre, out, c, extent_mm, volume_ml), out_dir, cfg, working,
+        _failed_dir)
+
+
+def _attempt(pre: Path, out_dir: Path, cfg: SfmConfig, extent_mm: float | None,
+             volume_ml: float | None) -> dict[str, Any]:
+    """One mapping of the session into ``out_dir`` (see :func:`run_sfm`); its quality.json."""
     camera = Camera.load(pre / "camera.json")
     if camera.has_distortion:
         log.warning("%s has distortion coefficients; the frames are assumed undistorted and "
@@ -337,7 +352,7 @@ def run_sfm(
                     "quality.json, other_models): %s", q["models_found"], q["model_sizes"][0],
                     "; ".join(f"{p['frames']} frames {p['first']}..{p['last']}"
                               for p in q["other_models"]))
-    return out_dir
+    return q
 
 
 def _judge(check: dict[str, Any], reason: str, mode: str, key: str, failed: Path,

@@ -1,0 +1,167 @@
+"""A second mapping with finer features when the first model is short, flagged or failed.
+
+SIFT at ``max_image_size`` (640 px) is fast and, on most video, as good as full size. But
+on some sessions the coarse features leave the model so sparse that the mapper cannot place
+the next frame although every neighbouring pair is verified: held-out phantom seed 4
+(1280x720 mp4v) gave three pieces of 47, 39 and 37 frames sharing one or two frames each, at
+640 px only 16 of frame 24's 479 keypoints had a 3-D point, and the largest piece was 2.1 mm
+off with a 55 % scale error. Joining the pieces afterwards did not work (a handful of matched
+3-D points between them; one shared frame's pose drifted the rotation). Mapped again at
+1280 px the same session gave 124 of 124 frames, 0.07 mm.
+
+So when the first model holds fewer than ``retry_registered_share`` of the frames, a
+self-check flags it, or the mapping fails, and the features were detected below the lit
+field's size, the session is mapped again beside the output (``<out>.retry``) with
+``max_image_size`` doubled; the better model is kept (one the self-checks pass first, then
+the one with more frames; the first on a tie) and quality.json's ``attempts`` lists both
+runs with their size, frames, flags and seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from cystomap.errors import StageError
+from cystomap.outputs import write_json
+from cystomap.sfm.config import SfmConfig
+
+log = logging.getLogger(__name__)
+
+SUFFIX = ".retry"
+
+#: one mapping of a session: (output directory, settings) -> quality.json's contents
+Attempt = Callable[[Path, SfmConfig], dict[str, Any]]
+
+
+@dataclasses.dataclass
+class Run:
+    """What one mapping gave: its quality figures or its error, and its cost."""
+
+    max_image_size: int
+    quality: dict[str, Any] | None
+    error: StageError | None
+    failed_dir: Path
+    time_s: float
+    cpu_s: float
+
+    @property
+    def registered(self) -> int:
+        if self.quality is not None:
+            return int(self.quality.get("registered") or 0)
+        try:  # a failed run lists what did reconstruct beside the outputs
+            sizes = json.loads((self.failed_dir / "quality.json").read_text())["model_sizes"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return 0
+        return int(sizes[0]) if sizes else 0
+
+    @property
+    def flagged(self) -> bool:
+        c = (self.quality or {}).get("consistency")
+        return isinstance(c, dict) and c.get("consistent") is False
+
+    def rank(self) -> tuple[bool, bool, int]:
+        return self.error is None, not self.flagged, self.registered
+
+    def record(self) -> dict[str, Any]:
+        return {"max_image_size": self.max_image_size, "registered": self.registered,
+                "flagged": self.flagged, "failed": self.error is not None,
+                "time_s": round(self.time_s, 3), "cpu_s": round(self.cpu_s, 3)}
+
+
+def reason(run: Run, share: float) -> str | None:
+    """Why ``run`` should be mapped again (None: it need not be)."""
+    if share <= 0:
+        return None
+    if run.error is not None:
+        return f"the mapping failed ({str(run.error).split(';')[0]})"
+    q = run.quality or {}
+    if run.flagged:
+        return f"the self-check flagged the model ({q['consistency'].get('reason')})"
+    n = int(q.get("frames_in") or 0)
+    if run.registered < share * n:
+        return (f"only {run.registered} of {n} frames are in the model (less than "
+                f"retry_registered_share {share:g})")
+    return None
+
+
+def finer(cfg: SfmConfig, working_scale: float) -> SfmConfig | None:
+    """The settings of the second mapping: ``max_image_size`` doubled; None when the features
+    were already detected at the lit field's full size."""
+    if cfg.max_image_size <= 0 or working_scale >= 1.0:
+        return None
+    return dataclasses.replace(cfg, max_image_size=2 * cfg.max_image_size)
+
+
+def _timed(attempt: Attempt, out: Path, cfg: SfmConfig, failed_dir: Path) -> Run:
+    t, c = time.perf_counter(), time.process_time()
+    quality, error = None, None
+    try:
+        quality = attempt(out, cfg)
+    except StageError as exc:
+        error = exc
+    return Run(cfg.max_image_size, quality, error, failed_dir,
+               time.perf_counter() - t, time.process_time() - c)
+
+
+def _replace(src: Path, dst: Path) -> None:
+    """Move directory ``src`` onto ``dst`` (renames; ``dst``'s old content is removed last)."""
+    old = dst.with_name(f".{dst.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if dst.exists():
+        dst.rename(old)
+    src.rename(dst)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scale: float,
+                   failed_dir: Callable[[Path], Path]) -> Path:
+    """Run ``attempt`` into ``out_dir``; map again with finer features where :func:`reason`
+    says so and :func:`finer` can; keep the better model in ``out_dir`` (see the module)."""
+    first = _timed(attempt, out_dir, cfg, failed_dir(out_dir))
+    why = reason(first, cfg.retry_registered_share)
+    second_cfg = finer(cfg, working_scale) if why else None
+    if second_cfg is None:
+        if why:
+            log.info("sfm: %s, and the features were already at the lit field's full size: "
+                     "not mapped again", why)
+        if first.error is not None:
+            raise first.error
+        return out_dir
+    log.warning("sfm: %s; mapping again with features at %d px (were %d px)", why,
+                second_cfg.max_image_size, cfg.max_image_size)
+    retry_dir = out_dir.with_name(out_dir.name + SUFFIX)
+    second = _timed(attempt, retry_dir, second_cfg, failed_dir(retry_dir))
+    keep = second if second.rank() > first.rank() else first
+    runs = [first.record(), second.record()]
+    if keep.error is not None:  # both failed: the second's pieces go beside the first's
+        dest = failed_dir(out_dir) / "retry"
+        if failed_dir(retry_dir).exists() and failed_dir(out_dir).exists():
+            shutil.rmtree(dest, ignore_errors=True)
+            failed_dir(retry_dir).rename(dest)
+        msg = str(second.error).replace(str(failed_dir(retry_dir)), str(dest))
+        raise StageError(f"{first.error}. Mapped again with features at "
+                         f"{second.max_image_size} px: {msg}")
+    if keep is second:
+        _replace(retry_dir, out_dir)
+        shutil.rmtree(failed_dir(out_dir), ignore_errors=True)
+    shutil.rmtree(retry_dir, ignore_errors=True)
+    shutil.rmtree(failed_dir(retry_dir), ignore_errors=True)
+    q = dict(keep.quality or {})
+    q["attempts"] = {"kept": 1 if keep is second else 0, "reason": why, "runs": runs}
+    for key in ("time_s", "cpu_s"):
+        if isinstance(q.get(key), dict):
+            q[key] = {**q[key], "attempts_total": round(sum(r[key] for r in runs), 3)}
+    write_json(out_dir / "quality.json", q)
+    kept, other = (runs[1], runs[0]) if keep is second else (runs[0], runs[1])
+    log.info("sfm: kept the %s mapping (%d frames at %d px; the other: %s at %d px)",
+             "second" if keep is second else "first", kept["registered"],
+             kept["max_image_size"], "failed" if other["failed"] else
+             f"{other['registered']} frames", other["max_image_size"])
+    return out_dir
