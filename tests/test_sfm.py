@@ -312,9 +312,14 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
     def fake(results: dict[int, object]):
         def attempt(out: Path, cfg: SfmConfig) -> dict:
             got = results[cfg.max_image_size]
+            if isinstance(got, tuple):  # (frames, flagged)
+                got, flagged = got
+            else:
+                flagged = False
             if isinstance(got, int):
                 out.mkdir(parents=True)
-                q = {"frames_in": 100, "registered": got, "consistency": {"consistent": True},
+                q = {"frames_in": 100, "registered": got,
+                     "consistency": {"consistent": not flagged, "reason": "drift"},
                      "time_s": {"total": 1.0}, "cpu_s": {"total": 1.0}}
                 (out / "quality.json").write_text(json.dumps(q))
                 return q
@@ -328,8 +333,15 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
         return p.with_name(p.name + ".failed")
 
     cfg = SfmConfig(max_image_size=640, retry_registered_share=0.95)
+    # frames first: a flagged model is kept over an unflagged one that holds less than the
+    # share of its frames (held-out glints:4: flagged 113 frames at 0.46 mm, unflagged 78 at
+    # 1.42 mm); of about the same size, the one the self-checks pass
     for results, kept, registered in (({640: 60, 1280: 98}, 1, 98), ({640: 90, 1280: 80}, 0, 90),
-                                      ({640: "fail", 1280: 97}, 1, 97), ({640: 96}, None, 96)):
+                                      ({640: "fail", 1280: 97}, 1, 97), ({640: 96}, None, 96),
+                                      ({640: (91, True), 1280: 62}, 0, 91),
+                                      ({640: (92, True), 1280: 89}, 1, 89),
+                                      ({640: 94, 1280: (98, True)}, 0, 94),
+                                      ({640: (92, True), 1280: (98, True)}, 1, 98)):
         root = tmp_path / f"case{len(list(tmp_path.iterdir()))}"
         root.mkdir()
         out = retry.map_with_retry(fake(results), root / "sfm", cfg, 0.5, failed_dir)
@@ -337,10 +349,16 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
         assert q["registered"] == registered
         assert q.get("attempts", {}).get("kept") == kept, q
         assert sorted(p.name for p in root.iterdir()) == ["sfm"], results
+    # black frames (too few features at any size) do not count against the share
+    black = {"frames_in": 100, "registered": 93, "dropped_reasons": {"too few features": 5}}
+    run = retry.Run(640, black, None, tmp_path, 1.0, 1.0)
+    assert retry.mappable(black) == 95 and retry.reason(run, 0.95) is None
+    black["dropped_reasons"] = {"no geometrically verified match with any paired frame": 5}
+    assert "93 of the 100 frames" in (retry.reason(run, 0.95) or "")
     # at the lit field's full size already, or retry off: one mapping, its error as it was
     with pytest.raises(StageError, match="only 7 frames"):
         retry.map_with_retry(fake({640: "fail"}), tmp_path / "full" / "sfm", cfg, 1.0, failed_dir)
-    off = SfmConfig(max_image_size=640)  # the default: never
+    off = SfmConfig(max_image_size=640, retry_registered_share=0.0)  # never
     out = retry.map_with_retry(fake({640: 10}), tmp_path / "off" / "sfm", off, 0.5, failed_dir)
     assert "attempts" not in json.loads((out / "quality.json").read_text())
     both = tmp_path / "both"

@@ -208,11 +208,10 @@ class SfmConfig:
     min_registered_fraction: float = setting(0.3, "[0, 1]")
     # a model holding fewer than this share of the frames, one a self-check flags, or a failed
     # mapping is mapped again with features at twice max_image_size (at most the lit field's
-    # size) when they were detected below it; the better model is kept (unflagged first, then
-    # more frames). 0 = never (the default, until it is shown not to hurt: on held-out phantom
-    # seeds, 1280x720 mp4v, it mended clean:4 (47 -> 124 of 124 frames, 2.1 -> 0.07 mm) but
-    # kept a worse model on glints:4 (78 of 124 frames, 1.4 mm; 113, 0.46 mm without it))
-    retry_registered_share: float = setting(0.0, "[0, 1]")
+    # size) when they were detected below it. The better model is kept: the one that maps; of
+    # two, the larger when the other holds less than this share of its frames, else the one
+    # the self-checks pass, then the larger. 0 = never
+    retry_registered_share: float = setting(0.95, "[0, 1]")
 
     # --- metric scale ---
     # statistical outlier removal of points before measuring the extent or volume:
