@@ -298,7 +298,9 @@ def _attempt(pre: Path, out_dir: Path, cfg: SfmConfig, extent_mm: float | None,
             _judge_halves(check, cfg, failed, names, result, pair_stats)
         if cfg.rotation_check != "off":
             with timer.step("loops"):
-                check["rotation"] = rotation.rotation_check(rec, names, geoms, tried, cfg)
+                # self-calibrated: the stored essential matrices saw the prior camera's rays
+                check["rotation"] = rotation.rotation_check(rec, names, geoms, tried, cfg,
+                                                            from_rays=not camera.calibrated)
             _judge_rotation(check, cfg, failed, names, result, pair_stats)
         mapping.as_pinhole(rec)
         if undistort is not None:

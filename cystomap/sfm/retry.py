@@ -164,6 +164,8 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
                 second_cfg.max_image_size, cfg.max_image_size)
     retry_dir = out_dir.with_name(out_dir.name + SUFFIX)
     second = _timed(attempt, retry_dir, second_cfg, failed_dir(retry_dir))
+    if second.error is not None:
+        log.warning("sfm: the mapping at %d px failed: %s", second.max_image_size, second.error)
     keep = second if better(second, first, cfg.retry_registered_share) else first
     runs = [first.record(), second.record()]
     if keep.error is not None:  # both failed: the second's pieces go beside the first's
