@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.bench.pipeline import run_session
-from cystomap.errors import StageError
+from cystomap.errors import InputError, StageError
 from cystomap.phantom import PhantomConfig, default_camera
 from cystomap.phantom.config import LESION_KINDS, TEXTURE_FAMILIES
 from cystomap.phantom.lesions import lesion_kinds_and_sites
@@ -86,6 +86,21 @@ def random_pair(seed: int, no_change: bool = False, n_frames: int = 124,
 def pairs(n_pairs: int, n_no_change: int, first_seed: int = 100, **kw: Any) -> list[Pair]:
     return ([random_pair(first_seed + i, **kw) for i in range(n_pairs)]
             + [random_pair(first_seed + 1000 + i, True, **kw) for i in range(n_no_change)])
+
+
+def undrawable(pair: Pair) -> str | None:
+    """Why the phantom cannot draw ``pair`` (None: it can). Session 2 adds the papillary
+    lesions' relief to a deformed wall, which can leave it no longer star-shaped about its
+    barycentre (held-out seeds 118 and 119: min cos 0.047 and 0.040); such a pair says nothing
+    about the pipeline and is left out of the benchmark, by name, instead of ending the run."""
+    from cystomap.phantom.geometry import session_bladder
+
+    try:
+        for s in (1, 2):
+            session_bladder(pair.cfg, s)
+    except InputError as exc:
+        return str(exc)
+    return None
 
 
 def build_pair(work: Path, pair: Pair, width: int, height: int) -> tuple[list[Path], float]:
@@ -273,7 +288,13 @@ def bench_froc(work: Path, out: Path, n_pairs: int = 30, n_no_change: int = 10, 
 
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
+    left_out: list[str] = []
     for pair in pairs(n_pairs, n_no_change, first_seed, n_frames=n_frames):
+        why = undrawable(pair)
+        if why is not None:
+            log.warning("froc: %s left out: %s", pair.name, why)
+            left_out.append(pair.name)
+            continue
         try:
             roots, build_s = build_pair(work, pair, width, height)
         except StageError as exc:  # a session the pipeline cannot reconstruct: its lesions missed
@@ -288,7 +309,8 @@ def bench_froc(work: Path, out: Path, n_pairs: int = 30, n_no_change: int = 10, 
     _write_csv(out / "froc.csv", summary)
     write_table(summary, out, "froc", f"FROC: {n_pairs} randomized pairs + {n_no_change} no-change pairs "
                 f"at {width}x{height}, {n_frames} frames (held out: texture family {HELD_OUT_FAMILY}, "
-                f"lesion kind {HELD_OUT_KIND})")
+                f"lesion kind {HELD_OUT_KIND})"
+                + (f"; left out, the phantom cannot draw them: {', '.join(left_out)}" if left_out else ""))
     plot(summary, out / "froc.png")
     return summary
 
