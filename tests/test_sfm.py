@@ -275,31 +275,33 @@ def test_failed_run_keeps_earlier_output(tmp_path):
 
 
 def test_short_model_is_mapped_again_with_finer_features(small_session, tmp_path):
-    """Features at a quarter of the frame (160 px of 640) leave the model short or flagged;
-    the stage maps again at 320 px, keeps that model and says so (cystomap/sfm/retry.py)."""
+    """Features at 120 px (of 640) are too coarse to map the session; the stage maps again at
+    240 px, keeps that model and says so (cystomap/sfm/retry.py). (At 160 px the first mapping
+    held all 124 frames and its rotation flag came and went between runs: not a premise a test
+    can rest on.)"""
     from cystomap.evaluate import evaluate_session, load_truth
 
     truth_dir, pre = small_session
     truth = load_truth(truth_dir)
     n = truth.n_frames
     out = tmp_path / "sfm"
-    cfg = from_mapping(SfmConfig, {"max_image_size": 160, "densify_corners": 0,
+    cfg = from_mapping(SfmConfig, {"max_image_size": 120, "densify_corners": 0,
                                    "retry_registered_share": 0.95}, "sfm")
     run_sfm(pre, out, cfg, extent_mm=truth.extent_mm)
     q = json.loads((out / "quality.json").read_text())
     a = q["attempts"]
     first, second = a["runs"]
-    # the premise: the coarse mapping fell short of the share or was flagged (measured
-    # 119/124, flagged); the finer one holds the frames, unflagged, and is the one kept
-    assert first["max_image_size"] == 160 and (first["flagged"] or first["failed"]
-                                               or first["registered"] < 0.95 * n), a
-    # (measured: 124/124 at 320 px, also flagged for rotation drift, so kept for its frames)
-    assert second["max_image_size"] == 320 and second["registered"] > first["registered"], a
+    # the premise: the coarse mapping failed (measured: 22 of 124 frames in the largest of 9
+    # models, 38 needed)
+    assert first["max_image_size"] == 120 and first["failed"], a
+    # measured: 124/124 at 240 px, 0.28 mm
+    assert second["max_image_size"] == 240 and not second["failed"], a
     assert a["kept"] == 1 and q["registered"] >= 0.95 * n, a
     assert q["cpu_s"]["attempts_total"] == pytest.approx(first["cpu_s"] + second["cpu_s"], abs=0.01)
     traj = evaluate_session(truth_dir, out)["trajectory"]
-    assert traj["rmse_mm"] < 0.5 and traj["scale_error"] < 0.03, traj
-    # the second mapping was written beside the outputs and moved in: nothing is left beside
+    assert traj["rmse_mm"] < 0.6 and traj["scale_error"] < 0.03, traj
+    # the second mapping was written beside the outputs and moved in; the first's pieces
+    # (sfm.failed) are removed with it: nothing is left beside
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sfm"]
 
 
@@ -925,19 +927,6 @@ def test_loop_rotations_of_a_self_calibrated_lens_use_its_estimate(tmp_path):
     assert stored["median_deg"] > 1.0, stored  # the premise: the prior's matrices are off
     ok = rotation.rotation_check(rec, names, geoms, loops, SfmConfig(), from_rays=True)
     assert ok["checked"] and not ok["flagged"] and ok["median_deg"] < 0.5, ok
-
-
-def test_loop_pairs_the_chain_links_are_not_tested_for_drift():
-    """A loop pair between places the sequential chain links directly (a chain pair with an end
-    within the window of each of its ends) is left out of the rotation check: its group of
-    short loops shares an error, and the model follows the chain pair there (fresh seeds 8, 9:
-    four false flags, all of such loops); a loop across places no chain pair reaches is kept."""
-    from cystomap.sfm.rotation import unlinked
-
-    chain = {(i, i + g) for i in range(100) for g in (1, 2, 3)} | {(4, 12), (4, 20)}
-    loops = {(2, 9), (5, 16), (3, 21), (5, 60), (30, 45)}
-    assert unlinked(loops, chain, 3) == {(5, 16), (5, 60), (30, 45)}  # (3, 21): by (4, 20)
-    assert unlinked(loops, set(), 3) == loops  # no chain given: every loop pair
 
 
 def test_loop_rotation_null_is_calibrated():

@@ -150,8 +150,7 @@ class SfmConfig:
     # (the check costs about one more incremental mapping)
     halves_check: str = setting("warn", choices=HALVES_CHECK_MODES)
     # self-check of loop rotations: each verified loop pair with parallax, on wall the model
-    # also puts in both frames, between places no sequential pair links directly, measures the
-    # rotation the model has between its two frames;
+    # also puts in both frames, measures the rotation the model has between its two frames;
     # neighbouring pairs that agree on one (more than sign-flipped noise does, p <= 0.01) are
     # rotation drift the epipolar tests cannot see: warn = flag it (quality.json consistency,
     # log, report), fail = fail the stage, off = skip (cystomap/sfm/rotation.py; about a second)

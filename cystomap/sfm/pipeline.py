@@ -299,9 +299,8 @@ def _attempt(pre: Path, out_dir: Path, cfg: SfmConfig, extent_mm: float | None,
         if cfg.rotation_check != "off":
             with timer.step("loops"):
                 # self-calibrated: the stored essential matrices saw the prior camera's rays
-                check["rotation"] = rotation.rotation_check(
-                    rec, names, geoms, tried, cfg, from_rays=not camera.calibrated,
-                    chain={p for p, k in verified.items() if k >= cfg.min_num_inliers})
+                check["rotation"] = rotation.rotation_check(rec, names, geoms, tried, cfg,
+                                                            from_rays=not camera.calibrated)
             _judge_rotation(check, cfg, failed, names, result, pair_stats)
         mapping.as_pinhole(rec)
         if undistort is not None:
