@@ -186,8 +186,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             verify = None
             if cfg.max_inconsistency > 0:
                 verify = _consistency_check(b, diff, atlas_b, cfg)
-            openings = (opening_directions(a, b, atlas_a, atlas_b, reg) if cfg.opening_deg > 0
-                        else np.zeros((0, 3)))
+            openings = (opening_directions(a, b, atlas_a, atlas_b, reg)
+                        if cfg.opening_deg > 0 or cfg.neck_levelling else np.zeros((0, 3)))
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
             t = lap("changes", t)
