@@ -446,17 +446,18 @@ def _neck_band_pair(sphere, lesion_deg: float) -> tuple[np.ndarray, ...]:
 def test_small_lesion_in_the_noisy_band_around_the_neck_is_found(sphere) -> None:
     """The wall around the neck is noisier than the rest (phantom pairs: ring medians of the
     significance 5-50 times the wall's 15-30° from the neck); its level is measured ring by
-    ring and scaled to the wall's (cystomap.compare.neck), so a 6 mm lesion 20° from the neck
-    is the one region. Without the levelling the band is reported (false regions), and cutting
-    a fixed 30° cone around the neck out (the old rule) loses the lesion."""
+    ring and scaled to the wall's (cystomap.compare.neck, opt-in), so a 6 mm lesion 20° from the
+    neck is the one region. Without the levelling the band is reported (false regions), and
+    cutting a fixed 30° cone around the neck out (the default) loses the lesion."""
     a, b, a_seen, opening, centre = _neck_band_pair(sphere, 20.0)
     hit = sphere[2].hit
-    regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None])
+    regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=True,
+                      opening_deg=0.0)
     assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.5
     assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6
-    raw = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=False)
+    raw = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=False,
+                  opening_deg=0.0)
     assert sum(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in raw) >= 1
-    cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=False,
-                   opening_deg=30.0)
+    cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None])  # the defaults
     assert all(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in cone)

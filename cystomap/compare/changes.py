@@ -19,7 +19,7 @@ overshoot of a smooth field's maxima and the root of a cluster's excess mass are
 asymptotically exponential. The false-alarm rate is about *reported* false regions, and
 most of a pair's noise clusters would never be reported (on a pale wall small colour
 residue is highly significant, but changes its patch by less than ``min_local_delta_e``;
-vessel residue is elongated): every candidate
+vessel residue is elongated; the neck's cap is dropped by the neck rule): every candidate
 cluster of at least ``min_diameter_mm`` is measured as it is by the checks below (all but
 the photo-consistency check, which reads session B's frames; :class:`_Checks`, the same code
 as for the regions), and the count of null clusters at least as strong is multiplied by the
@@ -59,14 +59,14 @@ misaligned gives a thin, long difference; phantom lesions measured 1.0-1.7, cut 
 The bladder neck: the scope enters through it, so registered cameras at or beyond the wall
 point to it; the mesh closes it with a cap whose texture (the urethra seen through it) differs
 between sessions, and the wall around it is filmed rarely and at grazing angles, on a mesh
-several millimetres off. That band's noise level is measured ring by ring around the neck's
-directions and its significance scaled to the rest of the wall's before anything is decided
-(``neck_levelling``, :mod:`cystomap.compare.neck`): a lesion there must stand out against the
-band, not against the wall. Optionally (``opening_deg`` > 0; off by default since the
-levelling) the wall within that angle of the neck is cut out of the accepted clusters and
-regions still centred within it are dropped; a lesion beside the cone, joined to it in one
-cluster, is measured without it rather than dropped with it. (The fixed 30° cone missed every
-small lesion within about 30 mm of the neck on held-out family-C pairs: 1 of 4.)
+several millimetres off, so its whole band is "changed" without any change. The wall within
+``opening_deg`` of such a camera's direction (the cap) is cut out of the accepted clusters,
+and regions still centred within it are dropped (lesions within about 30 mm of the neck are
+therefore not reported when the entry was registered; a lesion beside it, joined to the cap's
+difference in one cluster, is measured without the cap rather than dropped with it). The
+alternative, ``neck_levelling`` (opt-in, :mod:`cystomap.compare.neck`), scales the band's
+significance to the wall's noise level ring by ring instead: on held-out pairs it was no better
+(README, "The wall around the neck").
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
 ``local_delta_e``). Photometric residue the illumination matching leaves

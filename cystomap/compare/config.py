@@ -165,14 +165,15 @@ class CompareConfig:
     # session) point to it; the mesh caps the opening and the texture there (the urethra
     # seen through the cap) differs between sessions. The wall within this angle (degrees,
     # from B's barycentre) of such a camera's direction is cut out of the changed clusters
-    # and regions still centred within it are dropped (0 = off, the default: the levelling
-    # below handles the band; the former 30 missed small lesions up to 30 mm from the neck)
-    opening_deg: float = setting(0.0, "[0, 90)")
-    # the wall around the neck is filmed rarely and at grazing angles, and both sessions'
-    # textures there lie on a mesh several mm off: its noise level is measured ring by ring
-    # around the neck and its significance scaled to the rest of the wall's (see
-    # cystomap.compare.neck)
-    neck_levelling: bool = setting(True)
+    # (a lesion beside the neck is not joined to the cap) and regions still centred within
+    # it are dropped (0 = off)
+    opening_deg: float = setting(30.0, "[0, 90)")
+    # experimental, off: the wall around the neck is filmed rarely and at grazing angles, on a
+    # mesh several mm off; its noise level is measured ring by ring around the neck and its
+    # significance scaled to the rest of the wall's (see cystomap.compare.neck; with
+    # opening_deg 0 it found small lesions near the neck on some held-out pairs but lost a
+    # 24.8 mm CIS and added a false region on others: README, "The wall around the neck")
+    neck_levelling: bool = setting(False)
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a
     # region whose colours spread across the frames that see it more than this many times
     # as much as its ring's is not on the wall (aperture, mesh far off) and is dropped

@@ -21,6 +21,14 @@ whose length is 2π r sin θ), until the first ring that does not; the scale is 
 between ring centres. Beyond that, and everywhere when no camera was found at the neck,
 nothing changes. This is the heteroscedastic form of the whitening the significance already
 is: a change must stand out against the noise where it is.
+
+Opt-in (``compare.neck_levelling``, with ``opening_deg`` 0), because on held-out pairs it was
+no better than the fixed cone (README, "The wall around the neck"): on the family-C pairs it
+was developed on (111, 120, 123) it found the three small neck lesions the cone cut out, but on
+fresh ones it found none of the small ones either (5.2 mm, 3.6 mm; a 7.3 mm CIS only at rate
+1), lost a 24.8 mm CIS the cone had kept (its part outside 30°) and added a false region on a
+no-change pair. A lesion in the band must beat the band's noise, 5-50 times the wall's: what
+would help is less noise there (a surface that follows the neck's funnel), not another scale.
 """
 
 from __future__ import annotations
