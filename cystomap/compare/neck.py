@@ -15,10 +15,11 @@ choices there, both bad: report the band (false regions) or cut it out (the fixe
 So the noise level is measured ring by ring around the neck (rings of wall about
 ``2 * smooth_mm`` wide, centred on the neck's directions from B's barycentre, each the
 compared wall at those angles): starting at the first ring with compared wall, each ring whose
-median significance exceeds the whole compared wall's has its significance scaled down by
-the ratio of the two (a wall-area weighted median: a lesion covers a small share of a ring,
-whose length is 2π r sin θ), until the first ring that does not; the scale is interpolated
-between ring centres. Beyond that, and everywhere when no camera was found at the neck,
+median significance is more than ``BAND_LEVEL`` times the whole compared wall's has its
+significance scaled down by the ratio of the two (a wall-area weighted median: a lesion covers
+a small share of a ring, whose length is 2π r sin θ), up to and including the first ring that
+is not (the band's edge, scaled to the wall's level too); the scale is interpolated between
+ring centres and reaches 1 one ring further out. Beyond that, and everywhere when no camera was found at the neck,
 nothing changes. This is the heteroscedastic form of the whitening the significance already
 is: a change must stand out against the noise where it is.
 
@@ -65,7 +66,7 @@ def level_around_neck(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: 
     """``sig`` with the wall around the neck scaled to the whole compared wall's noise level
     (see the module's doc), and what was done (for ``compare.json``)."""
     openings = np.asarray(openings, np.float64).reshape(-1, 3)
-    if not len(openings) or not joint.any():
+    if not len(openings):
         return sig, {"levelled": False, "reason": "no camera at the neck"}
     area = grid.area
     ref = weighted_median(sig[joint], area[joint])
