@@ -63,6 +63,8 @@ log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 5.0
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _MASK_WORK_WIDTH = 480  # FOV detection runs at most at this width
+# levelling: cells this many robust standard deviations darker than the fit are lumen
+DARK_Z = 4.0
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,10 @@ class PreprocessConfig:
     # The levelling gain is clipped to [1 / level_max_gain, level_max_gain] (dark lumen areas
     # are not amplified into noise).
     level_max_gain: float = setting(4.0, ">= 1")
+    # Leave areas far darker than the fitted illumination (the lumen: the bladder neck's
+    # opening, the dark end of a tube; DARK_Z robust standard deviations below the frame's
+    # median ratio) out of the illumination fit, so the wall around them is not brightened.
+    level_exclude_dark: bool = True
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
     level_mean: float = setting(0.0, "[0, 255]")
     # CLAHE clip limit for the enhanced images (0 = no CLAHE, levelled grey only).
@@ -310,6 +316,11 @@ class _Leveller:
         sh, sw = m.shape
         yy, xx = np.mgrid[0:sh, 0:sw].astype(np.float64)
         self.x, self.y = xx - (sw - 1) / 2, yy - (sh - 1) / 2
+        self.row = self._fit_rows(m)
+
+    def _fit_rows(self, m: np.ndarray) -> np.ndarray:
+        """Per small pixel, the first row of the inverse moment matrix of the local linear fit
+        over the support ``m`` (the weights that give the fitted value at the pixel)."""
         x, y, blur = self.x, self.y, self._blur
         s0 = blur(m)
         sx, sy = blur(m * x) - x * s0, blur(m * y) - y * s0
@@ -324,22 +335,47 @@ class _Leveller:
         row = np.zeros(a.shape[:-1])
         row[ok] = np.linalg.inv(a[ok])[:, 0, :]  # first row: the fitted value at the pixel
         row[~ok, 0] = 1.0 / np.maximum(s0[~ok], 1e-12)  # too little support: plain average
-        self.row = row
+        return row
 
     def _blur(self, image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), self.sigma_small, borderType=cv2.BORDER_CONSTANT)
+
+    def _fit(self, ml: np.ndarray, m: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """The local linear fit of the small luminance sum ``ml`` over the support ``m``."""
+        sl = self._blur(ml)
+        slx = self._blur(ml * self.x) - self.x * sl
+        sly = self._blur(ml * self.y) - self.y * sl
+        fitted = row[..., 0] * sl + row[..., 1] * slx + row[..., 2] * sly
+        # never below a fraction of the plain local average (guards an extrapolated fit)
+        plain = sl / np.maximum(self._blur(m), 1e-12)
+        return np.maximum(fitted, 0.25 * plain)
+
+    def dark_cells(self, ml: np.ndarray, fitted: np.ndarray) -> np.ndarray:
+        """Small-image cells far darker than the fitted illumination: the lumen (the neck's
+        opening, the dark end of a tube). Their log ratio to the fit lies more than DARK_Z
+        robust standard deviations (1.4826 MAD over the cells) below the cells' median; the
+        cells average a few hundred pixels, so thin dark texture (vessels) does not reach it."""
+        full = self.m > 0.5
+        if full.sum() < 16:
+            return np.zeros_like(full)
+        mean = ml / np.maximum(self.m, 1e-12)
+        r = np.log((mean + 1.0) / (np.maximum(fitted, 0.0) + 1.0))
+        med = float(np.median(r[full]))
+        spread = 1.4826 * float(np.median(np.abs(r[full] - med)))
+        return full & (r < med - DARK_Z * max(spread, 1e-3))
 
     def illumination(self, lum: np.ndarray) -> np.ndarray:
         # area-average L·m (not L): border pixels outside the mask must not leak in
         ml = cv2.resize(np.where(self.inside, lum, 0).astype(np.float64), self.small,
                         interpolation=cv2.INTER_AREA)
-        sl = self._blur(ml)
-        slx = self._blur(ml * self.x) - self.x * sl
-        sly = self._blur(ml * self.y) - self.y * sl
-        fitted = self.row[..., 0] * sl + self.row[..., 1] * slx + self.row[..., 2] * sly
-        # never below a fraction of the plain local average (guards an extrapolated fit)
-        plain = sl / np.maximum(self._blur(self.m), 1e-12)
-        fitted = np.maximum(fitted, 0.25 * plain)
+        fitted = self._fit(ml, self.m, self.row)
+        if self.cfg.level_exclude_dark:
+            # a dark lumen in the window would pull the fit down and brighten the wall around
+            # it (a halo that differs from frame to frame): fit again without it
+            dark = self.dark_cells(ml, fitted)
+            if dark.any():
+                m = np.where(dark, 0.0, self.m)
+                fitted = self._fit(np.where(dark, 0.0, ml), m, self._fit_rows(m))
         return cv2.resize(fitted.astype(np.float32), self.size, interpolation=cv2.INTER_LINEAR)
 
     def gain(self, lum: np.ndarray) -> tuple[np.ndarray | None, float]:
