@@ -104,7 +104,7 @@ class PreprocessConfig:
     # are not amplified into noise).
     level_max_gain: float = setting(4.0, ">= 1")
     # Leave areas far darker than the fitted illumination (the lumen: the bladder neck's
-    # opening, the dark end of a tube; DARK_Z robust standard deviations below the frame's
+    # opening, the dark end of a tube: more than 4 robust standard deviations below the frame's
     # median ratio) out of the illumination fit, so the wall around them is not brightened.
     level_exclude_dark: bool = True
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
