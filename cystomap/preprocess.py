@@ -63,8 +63,12 @@ log = logging.getLogger(__name__)
 PROGRESS_EVERY_S = 5.0
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _MASK_WORK_WIDTH = 480  # FOV detection runs at most at this width
-# levelling: cells this many robust standard deviations darker than the fit are lumen
+# levelling: cells this many robust standard deviations darker than the fit are lumen, and
+# at least this much darker (log ratio: under half the fitted light). Without the floor the
+# test is a tail cut: on phantom frames with no lumen in view the darkest 1-2 % of cells lie
+# 4 robust sd (about 0.13) below the median, from ordinary shading (2026-12-05)
 DARK_Z = 4.0
+DARK_MIN_LOG = math.log(2.0)
 
 
 @dataclass(frozen=True)
@@ -104,8 +108,11 @@ class PreprocessConfig:
     # are not amplified into noise).
     level_max_gain: float = setting(4.0, ">= 1")
     # Leave areas far darker than the fitted illumination (the lumen: the bladder neck's
-    # opening, the dark end of a tube: more than 4 robust standard deviations below the frame's
-    # median ratio) out of the illumination fit, so the wall around them is not brightened.
+    # opening, the dark end of a tube: under half the fitted light and more than 4 robust
+    # standard deviations below the frame's median ratio) out of the illumination fit of the
+    # colour frames (for the atlas), so the wall around them is not brightened. The enhanced
+    # frames (for matching) keep the plain fit: CLAHE follows them anyway, and changing them
+    # moved the SfM of the entry frames on a glint test session (flagged, 7.4 mm off).
     level_exclude_dark: bool = True
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
     level_mean: float = setting(0.0, "[0, 255]")
@@ -353,7 +360,8 @@ class _Leveller:
     def dark_cells(self, ml: np.ndarray, fitted: np.ndarray) -> np.ndarray:
         """Small-image cells far darker than the fitted illumination: the lumen (the neck's
         opening, the dark end of a tube). Their log ratio to the fit lies more than DARK_Z
-        robust standard deviations (1.4826 MAD over the cells) below the cells' median; the
+        robust standard deviations (1.4826 MAD over the cells) and at least DARK_MIN_LOG below
+        the cells' median, and the cells next to them (the lumen's edge crosses them); the
         cells average a few hundred pixels, so thin dark texture (vessels) does not reach it."""
         full = self.m > 0.5
         if full.sum() < 16:
@@ -362,36 +370,53 @@ class _Leveller:
         r = np.log((mean + 1.0) / (np.maximum(fitted, 0.0) + 1.0))
         med = float(np.median(r[full]))
         spread = 1.4826 * float(np.median(np.abs(r[full] - med)))
-        return full & (r < med - DARK_Z * max(spread, 1e-3))
+        dark = full & (r < med - max(DARK_Z * spread, DARK_MIN_LOG))
+        # and the cells around it, which the lumen's edge crosses (part lumen, part wall)
+        return full & (cv2.dilate(dark.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
 
-    def illumination(self, lum: np.ndarray) -> np.ndarray:
+    def illumination(self, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The plain fit and, with ``level_exclude_dark`` and a lumen in view, the fit without
+        the lumen (else None), both at full size."""
         # area-average L·m (not L): border pixels outside the mask must not leak in
         ml = cv2.resize(np.where(self.inside, lum, 0).astype(np.float64), self.small,
                         interpolation=cv2.INTER_AREA)
         fitted = self._fit(ml, self.m, self.row)
+        refit = None
         if self.cfg.level_exclude_dark:
             # a dark lumen in the window would pull the fit down and brighten the wall around
             # it (a halo that differs from frame to frame): fit again without it
             dark = self.dark_cells(ml, fitted)
             if dark.any():
                 m = np.where(dark, 0.0, self.m)
-                fitted = self._fit(np.where(dark, 0.0, ml), m, self._fit_rows(m))
-        return cv2.resize(fitted.astype(np.float32), self.size, interpolation=cv2.INTER_LINEAR)
+                refit = self._fit(np.where(dark, 0.0, ml), m, self._fit_rows(m))
+        return (self._full(fitted), None if refit is None else self._full(refit))
 
-    def gain(self, lum: np.ndarray) -> tuple[np.ndarray | None, float]:
-        """Per-pixel gain (None = no levelling) and the target mean luminance."""
+    def _full(self, small: np.ndarray) -> np.ndarray:
+        return cv2.resize(small.astype(np.float32), self.size, interpolation=cv2.INTER_LINEAR)
+
+    def gain(self, lum: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, float]:
+        """Per-pixel gains for the enhanced and for the colour frames (None = no levelling;
+        the same array unless a lumen is left out of the colour's fit) and the target mean
+        luminance."""
         inside = self.inside if self.inside.any() else np.ones(lum.shape, bool)
         mean = float(lum[inside].mean())
         target = self.cfg.level_mean or mean
         if not self.enabled:
             if self.cfg.level_mean > 0 and mean > 0:
-                return np.full(lum.shape, target / mean, np.float32), target
-            return None, mean
-        inv = 1.0 / np.maximum(self.illumination(lum), 1.0)
+                flat = np.full(lum.shape, target / mean, np.float32)
+                return flat, flat, target
+            return None, None, mean
+        plain, refit = self.illumination(lum)
+        g = self._gain(lum, plain, inside, target)
+        return g, (g if refit is None else self._gain(lum, refit, inside, target)), target
+
+    def _gain(self, lum: np.ndarray, illumination: np.ndarray, inside: np.ndarray,
+              target: float) -> np.ndarray:
+        inv = 1.0 / np.maximum(illumination, 1.0)
         levelled_mean = float((lum * inv)[inside].mean())
         g = inv * (target / max(levelled_mean, 1e-6))
         mg = self.cfg.level_max_gain
-        return np.clip(g, 1.0 / mg, mg).astype(np.float32), target
+        return np.clip(g, 1.0 / mg, mg).astype(np.float32)
 
 
 def _process(
@@ -402,14 +427,18 @@ def _process(
     the mask and the share of the mask taken by glints."""
     image = geo.undistort(_read(path, geo.camera))
     lum = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
-    gain, target = leveller.gain(lum)
-    if gain is not None:
-        color = np.clip(image.astype(np.float32) * gain[..., None], 0, 255).astype(np.uint8)
-    else:
-        color = image.copy()
+    gain, color_gain, target = leveller.gain(lum)
     outside = mask == 0
-    color[outside] = 0
-    grey = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
+
+    def levelled(g: np.ndarray | None) -> np.ndarray:
+        out = image.copy() if g is None else np.clip(image.astype(np.float32) * g[..., None],
+                                                     0, 255).astype(np.uint8)
+        out[outside] = 0
+        return out
+
+    matched = levelled(gain)
+    color = matched if color_gain is gain else levelled(color_gain)
+    grey = cv2.cvtColor(matched, cv2.COLOR_BGR2GRAY)
     level = float(grey[~outside].mean()) if (~outside).any() else 0.0
     if cfg.clahe_clip > 0:
         # fill the outside with the mean level so the border does not skew CLAHE's histograms
@@ -422,7 +451,7 @@ def _process(
     outputs = [("color", color), ("enhanced", grey)]
     share = 0.0
     if cfg.glint_z > 0:
-        glint = glint_mask(color, mask, cfg.glint_z, cfg.glint_dilate)
+        glint = glint_mask(matched, mask, cfg.glint_z, cfg.glint_dilate)
         inside = max(1, int(np.count_nonzero(mask)))
         share = float(np.count_nonzero(glint & (mask > 0))) / inside
         outputs.append(("masks", np.where(glint, 0, mask).astype(np.uint8)))

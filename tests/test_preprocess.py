@@ -241,7 +241,7 @@ def _lumen_ring(tmp_path: Path, exclude_dark: bool) -> tuple[float, float]:
 
 def test_levelling_leaves_no_halo_around_a_dark_lumen(tmp_path: Path) -> None:
     ring, far = _lumen_ring(tmp_path, exclude_dark=True)
-    assert ring / far == pytest.approx(1.0, abs=0.03)  # measured 1.012
+    assert ring / far == pytest.approx(1.0, abs=0.03)  # measured 1.003
     # the plain fit averages the lumen in and brightens the wall around it (can fail)
     ring0, far0 = _lumen_ring(tmp_path, exclude_dark=False)
     assert ring0 / far0 > 1.1  # measured 1.19
