@@ -16,6 +16,7 @@ from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare import CompareConfig
 from cystomap.compare.changes import changed_mask, detect, mean_colour_difference
 from cystomap.compare.difference import compute_difference, painted_b, wall_grid
+from cystomap.compare.neck import neck_angles
 
 RADIUS = 40.0
 WALL = np.array([190.0, 120.0, 100.0])
@@ -61,8 +62,10 @@ def _detect(sphere, a, b, a_seen, b_seen, openings=None, **kw):
     def hint(sig, joint):
         return changed_mask(sig, joint, grid.area, cfg.false_alarm_rate)
 
+    neck = (neck_angles(grid, np.asarray(openings)) if cfg.neck_ratio and openings is not None
+            else None)
     diff = compute_difference(grid, b.astype(np.float32), b_seen, a.astype(np.float32), a_seen,
-                              cfg, hint)
+                              cfg, hint, neck)
     painted_b(diff, np.dstack([b, b_seen]).astype(np.float32), cfg.smooth_mm)
     regions, _ = detect(diff, cfg, proj, rays, None, openings)
     return regions
@@ -461,3 +464,40 @@ def test_small_lesion_in_the_noisy_band_around_the_neck_is_found(sphere) -> None
     assert sum(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in raw) >= 1
     cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None])  # the defaults
     assert all(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in cone)
+
+
+def _neck_ramp_pair(sphere, lesion_deg: float, ramp: float) -> tuple[np.ndarray, ...]:
+    """B's wall brighter than A's by a steep ring-symmetric ramp around the neck (log ratio
+    ``ramp`` at 8°, falling to 0 at 30°: each session lights and views the funnel around the
+    neck differently; pair 308 measured +0.04 at 20°, +0.013 at 30°), and a 6 mm lesion in B
+    ``lesion_deg`` from the neck."""
+    grid = sphere[2]
+    opening = np.array([0.0, 0.0, -1.0])
+    pts = np.nan_to_num(grid.points)
+    ang = np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+    rng = np.random.default_rng(12)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    gain = np.exp(ramp * np.clip((30.0 - ang) / 22.0, 0, 1))[..., None]
+    b = WALL * gain + rng.normal(0, 2.0, (*grid.shape, 3))
+    centre = _on_sphere(math.radians(lesion_deg - 90.0), 0.7)
+    lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < 3.0)
+    b[lesion] = LESION + rng.normal(0, 2.0, (int(lesion.sum()), 3))
+    a_seen = grid.hit & (ang >= 8.0)
+    return a, b, a_seen, opening, centre
+
+
+
+def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
+    """B brighter than A in a steep ring around the neck (log ratio 0.2 at 8°, 0 at 30°: too
+    steep for the 15 mm illumination field): matching the colour ring by ring (neck_ratio,
+    opt-in) keeps a 6 mm lesion 20° from the neck as the one region; without it the lesion
+    is not reported (nor was a 24.8 mm CIS at the neck of held-out pair 131)."""
+    a, b, a_seen, opening, centre = _neck_ramp_pair(sphere, 20.0, 0.2)
+    hit = sphere[2].hit
+    regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_ratio=True,
+                      opening_deg=0.0)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.5
+    assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6  # measured 5.6
+    plain = _detect(sphere, a, b, a_seen, hit, openings=opening[None], opening_deg=0.0)
+    assert not any(np.linalg.norm([r.x, r.y, r.z] - centre) < 3 for r in plain)

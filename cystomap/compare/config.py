@@ -174,6 +174,14 @@ class CompareConfig:
     # opening_deg 0 it found small lesions near the neck on some held-out pairs but lost a
     # 24.8 mm CIS and added a false region on others: README, "The wall around the neck")
     neck_levelling: bool = setting(False)
+    # the brightness and colour of the wall around the neck, B against A, are matched ring by
+    # ring around it (rings 2 x smooth_mm wide, out to 90 degrees; the wall-area weighted
+    # median of each ring's log colour ratio), after the illumination field: that field is
+    # too wide for the steep shading of the funnel, and each session paints it from other
+    # grazing views (see cystomap.compare.neck). Opt-in: on held-out family-C pair 131 it
+    # kept a 24.8 mm CIS at the neck the default lost (6/6 lesions, 0 false regions); not yet
+    # measured on other pairs (README, "The wall around the neck")
+    neck_ratio: bool = setting(False)
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a
     # region whose colours spread across the frames that see it more than this many times
     # as much as its ring's is not on the wall (aperture, mesh far off) and is dropped

@@ -343,7 +343,8 @@ class Difference:
 
 def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb: np.ndarray,
                        a_seen: np.ndarray, cfg: Any,
-                       hint: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Difference:
+                       hint: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                       neck_angle: np.ndarray | None = None) -> Difference:
     """Illumination-matched, smoothed and whitened colour difference B − A on the grid.
 
     ``hint(significance, joint)`` gives the wall (bool mask) that counts as changed when the
@@ -353,6 +354,9 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
     different distances, so the same vessel can be sharper in one. The significance is the
     smallest over comparing B with A, B with A blurred (σ = t/2, t) and A with B blurred: a
     difference of focus is explained away, a new coloured patch is not.
+
+    ``neck_angle`` (each pixel's angle to the bladder neck, degrees): A's colours are also
+    matched to B's ring by ring around the neck (:func:`cystomap.compare.neck.ring_ratio`).
     """
     joint_raw = grid.hit & b_seen & a_seen
     if joint_raw.sum() < 100:
@@ -373,6 +377,12 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
             lb = masked_blur_mm(np.log(b_rgb + 8.0), use, grid, cfg.illumination_mm)
             la = masked_blur_mm(np.log(a_q + 8.0), use, grid, cfg.illumination_mm)
             a_n = np.clip((a_q + 8.0) * np.exp(lb - la) - 8.0, 0, 255)
+        if neck_angle is not None:
+            from cystomap.compare.neck import ring_ratio
+
+            factor, info["neck_ratio"] = ring_ratio(b_rgb, a_n, joint & ~exclude, grid,
+                                                    neck_angle, 2 * sm)
+            a_n = np.clip((a_n + 8.0) * factor - 8.0, 0, 255)
         delta = np.where(joint[..., None], b_rgb - a_n, 0.0).astype(np.float32)
         sa = [masked_blur_mm(a_n, joint, grid, math.hypot(sm, x)) for x in blurs]
         sb = [masked_blur_mm(b_rgb, joint, grid, math.hypot(sm, x)) for x in blurs]

@@ -107,3 +107,42 @@ def level_around_neck(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: 
              "up to %.1f against %.2f): its significance is levelled ring by ring",
              centres[-1], max(medians), ref)
     return out, info
+
+
+def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid,
+               ang: np.ndarray, ring_mm: float) -> tuple[np.ndarray, dict[str, Any]]:
+    """Per-pixel factor (H, W, 3) for A's ``colour + 8`` that matches B's colour to A's ring
+    by ring around the neck (``ang``: each pixel's angle to it, from :func:`neck_angles`):
+    each ring's wall-area weighted median of ``log((B + 8) / (A + 8))`` per channel over the
+    wall ``use``, interpolated between ring centres, out to 90°; 1 beyond and in rings with
+    too little wall. A ring around the neck is 2π r sin θ long (some 75 mm at 20° in a
+    35 mm bladder), so a lesion holds a minor share of it and its median is the wall's."""
+    radius = float(np.median(np.linalg.norm(grid.points[grid.hit] - grid.proj.barycentre,
+                                            axis=1)))
+    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
+    ring = np.floor(ang / width).astype(np.int64)
+    log_ratio = np.log(b_rgb + 8.0) - np.log(a_rgb + 8.0)
+    area = grid.area
+    centres, medians = [], []
+    for k in range(math.ceil(90.0 / width)):
+        sel = use & (ring == k)
+        if sel.sum() < MIN_RING_PIXELS:
+            continue
+        centres.append((k + 0.5) * width)
+        medians.append([weighted_median(log_ratio[sel, c], area[sel]) for c in range(3)])
+    factor = np.ones(b_rgb.shape, np.float32)
+    if len(centres) < 2:
+        return factor, {"matched": False, "reason": "too little wall around the neck"}
+    med = np.asarray(medians)
+    # down to 0 at 90° (one ring beyond the last), so the correction ends smoothly
+    xs = np.r_[centres, max(90.0, centres[-1] + width)]
+    inside = ang < xs[-1]
+    for c in range(3):
+        curve = np.interp(ang[inside], xs, np.r_[med[:, c], 0.0])
+        factor[inside, c] = np.exp(curve)
+    lum = med @ np.array([0.299, 0.587, 0.114])
+    info = {"matched": True, "ring_deg": round(width, 3), "from_deg": round(centres[0], 2),
+            "largest_log_ratio": round(float(np.abs(med).max()), 4),
+            "luminance_log_ratio_by_ring": [round(float(x), 4) for x in lum]}
+    return factor, info
+

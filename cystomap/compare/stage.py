@@ -89,6 +89,7 @@ from cystomap.compare.images import (
     significance_image,
 )
 from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
+from cystomap.compare.neck import neck_angles
 from cystomap.compare.null import changed_mask
 from cystomap.compare.registration import Registration, register
 from cystomap.errors import InputError
@@ -173,7 +174,10 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     found = FindBack()
     if reg.registered:
         try:
-            diff, grid_info = _difference(atlas_a, atlas_b, reg, cfg)
+            openings = (opening_directions(a, b, atlas_a, atlas_b, reg)
+                        if cfg.opening_deg > 0 or cfg.neck_levelling or cfg.neck_ratio
+                        else np.zeros((0, 3)))
+            diff, grid_info = _difference(atlas_a, atlas_b, reg, cfg, openings)
         except InputError as exc:  # nothing seen by both: say so, do not crash
             reg.registered = False
             reg.reason = f"co-registered, but {exc}"
@@ -186,8 +190,6 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             verify = None
             if cfg.max_inconsistency > 0:
                 verify = _consistency_check(b, diff, atlas_b, cfg)
-            openings = (opening_directions(a, b, atlas_a, atlas_b, reg)
-                        if cfg.opening_deg > 0 or cfg.neck_levelling else np.zeros((0, 3)))
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
             t = lap("changes", t)
@@ -297,7 +299,8 @@ def opening_directions(a: SessionPaths, b: SessionPaths, atlas_a: SessionAtlas,
 
 
 def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
-                cfg: CompareConfig) -> tuple[Any, dict[str, Any]]:
+                cfg: CompareConfig, openings: np.ndarray | None = None,
+                ) -> tuple[Any, dict[str, Any]]:
     scale = grid_scale(atlas_b, cfg.grid_mm)
     proj_g, rgba_b = atlas_b.scaled(scale, cfg.min_views)
     grid = wall_grid(proj_g, atlas_b.rays)
@@ -323,7 +326,9 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
     def hint(sig: np.ndarray, joint: np.ndarray) -> np.ndarray:
         return changed_mask(sig, joint, grid.area, cfg.false_alarm_rate)
 
-    diff = compute_difference(grid, b_rgb, b_seen, a_rgb, a_seen > 0.999, cfg, hint)
+    neck = (neck_angles(grid, openings)
+            if cfg.neck_ratio and openings is not None and len(openings) else None)
+    diff = compute_difference(grid, b_rgb, b_seen, a_rgb, a_seen > 0.999, cfg, hint, neck)
     if cfg.extend_into_unseen:
         painted_b(diff, atlas_b.scaled(scale, 0)[1] if cfg.min_views > 1 else rgba_b, cfg.smooth_mm)
     diff.point_distance = point_dist
