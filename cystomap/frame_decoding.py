@@ -34,6 +34,7 @@ from cystomap.frame_scoring import (
     analysis_size,
     to_analysis,
 )
+from cystomap.images import PNG_WRITE
 from cystomap.parallel import ordered_map, prefetch
 from cystomap.video import frame_time, open_video
 
@@ -109,7 +110,7 @@ def _save_png(out: Path, index: int, frame: np.ndarray) -> float:
     """Write frame ``index`` as PNG; returns the CPU seconds it took."""
     c0 = time.thread_time()
     path = _png_path(out, index)
-    if not cv2.imwrite(str(path), frame):
+    if not cv2.imwrite(str(path), frame, PNG_WRITE):
         raise StageError(f"{path}: cannot write PNG")
     return time.thread_time() - c0
 

@@ -9,6 +9,12 @@ import numpy as np
 
 from cystomap.errors import StageError
 
+# PNG options for the frames the stages write (frames, preprocess): zlib's RLE strategy at the
+# default level. Measured 2026-12-05 on phantom frames (median of 8-20, lossless either way):
+# 640x360 21.2 -> 13.1 ms and 0.197 -> 0.173 MB; 1080p 162 -> 97 ms, 1.11 -> 0.92 MB; 1080p
+# with sensor-like noise 216 -> 126 ms, 3.79 -> 3.33 MB; reading one back 39 -> 45 ms (1080p)
+PNG_WRITE = [cv2.IMWRITE_PNG_COMPRESSION, 3, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+
 
 def imwrite_rgb(path: Path, img: np.ndarray) -> None:
     """Write an RGB or RGBA (or grey) array with OpenCV, which expects BGR(A)."""

@@ -45,6 +45,7 @@ import numpy as np
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
 from cystomap.glints import glint_mask
+from cystomap.images import PNG_WRITE
 from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.settings import setting, validate
 from cystomap.undistortion import _Geometry
@@ -457,6 +458,6 @@ def _process(
         outputs.append(("masks", np.where(glint, 0, mask).astype(np.uint8)))
     for sub, img in outputs:
         target_path = out / sub / path.name
-        if not cv2.imwrite(str(target_path), img):
+        if not cv2.imwrite(str(target_path), img, PNG_WRITE):
             raise StageError(f"{target_path}: cannot write PNG")
     return level, share
