@@ -178,9 +178,9 @@ class CompareConfig:
     # ring around it (rings 2 x smooth_mm wide, out to 90 degrees; the wall-area weighted
     # median of each ring's log colour ratio), after the illumination field: that field is
     # too wide for the steep shading of the funnel, and each session paints it from other
-    # grazing views (see cystomap.compare.neck). Opt-in: on held-out family-C pair 131 it
-    # kept a 24.8 mm CIS at the neck the default lost (6/6 lesions, 0 false regions); not yet
-    # measured on other pairs (README, "The wall around the neck")
+    # grazing views (see cystomap.compare.neck). Opt-in: on fresh family-C pairs 124-131
+    # (2026-12-05) 19/24 lesions with it and without, 0 false regions either way: no gain
+    # shown (README, "The neck band's cause")
     neck_ratio: bool = setting(False)
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a
     # region whose colours spread across the frames that see it more than this many times
