@@ -422,15 +422,29 @@ def _blotches(seed: int, pts: np.ndarray, scale_mm: float, n: int = 120) -> np.n
     return (out / out.std(0)).reshape(pts.shape)
 
 
+def _neck_geometry(grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The neck's direction (the sphere's bottom), the grid's points and their angle to it."""
+    opening = np.array([0.0, 0.0, -1.0])
+    pts = np.nan_to_num(grid.points)
+    return opening, pts, np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+
+
+def _neck_lesion(grid, b: np.ndarray, pts: np.ndarray, lesion_deg: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Paint a 6 mm lesion into ``b`` ``lesion_deg`` from the neck; its centre."""
+    centre = _on_sphere(math.radians(lesion_deg - 90.0), 0.7)
+    lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < 3.0)
+    b[lesion] = LESION + rng.normal(0, 2.0, (int(lesion.sum()), 3))
+    return centre
+
+
 def _neck_band_pair(sphere, lesion_deg: float) -> tuple[np.ndarray, ...]:
     """A wall whose band 8-36° from the neck is painted differently in each session (texture
     on a mesh several mm off: independent blotches of ±12 RGB units in A and B, as on the
     phantom's trigone), the neck itself (within 8°) unseen by A, and a 6 mm lesion in B
     ``lesion_deg`` from the neck."""
     grid = sphere[2]
-    opening = np.array([0.0, 0.0, -1.0])
-    pts = np.nan_to_num(grid.points)
-    ang = np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+    opening, pts, ang = _neck_geometry(grid)
     rng = np.random.default_rng(11)
     a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
     b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
@@ -438,10 +452,7 @@ def _neck_band_pair(sphere, lesion_deg: float) -> tuple[np.ndarray, ...]:
     band = (grid.hit * np.clip((36.0 - ang) / 12.0, 0, 1))[..., None]
     a = a + band * 12 * _blotches(21, pts, 4.0)
     b = b + band * 12 * _blotches(22, pts, 4.0)
-    el = math.radians(lesion_deg - 90.0)
-    centre = _on_sphere(el, 0.7)
-    lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < 3.0)
-    b[lesion] = LESION + rng.normal(0, 2.0, (int(lesion.sum()), 3))
+    centre = _neck_lesion(grid, b, pts, lesion_deg, rng)
     a_seen = grid.hit & (ang >= 8.0)
     return a, b, a_seen, opening, centre
 
@@ -472,19 +483,14 @@ def _neck_ramp_pair(sphere, lesion_deg: float, ramp: float) -> tuple[np.ndarray,
     neck differently; pair 308 measured +0.04 at 20°, +0.013 at 30°), and a 6 mm lesion in B
     ``lesion_deg`` from the neck."""
     grid = sphere[2]
-    opening = np.array([0.0, 0.0, -1.0])
-    pts = np.nan_to_num(grid.points)
-    ang = np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+    opening, pts, ang = _neck_geometry(grid)
     rng = np.random.default_rng(12)
     a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
     gain = np.exp(ramp * np.clip((30.0 - ang) / 22.0, 0, 1))[..., None]
     b = WALL * gain + rng.normal(0, 2.0, (*grid.shape, 3))
-    centre = _on_sphere(math.radians(lesion_deg - 90.0), 0.7)
-    lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < 3.0)
-    b[lesion] = LESION + rng.normal(0, 2.0, (int(lesion.sum()), 3))
+    centre = _neck_lesion(grid, b, pts, lesion_deg, rng)
     a_seen = grid.hit & (ang >= 8.0)
     return a, b, a_seen, opening, centre
-
 
 
 def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
