@@ -44,6 +44,22 @@ def test_recording_config() -> None:
         PhantomConfig(trajectory="zigzag")
 
 
+def test_benchmark_overrides_nest_and_merge() -> None:
+    """The recording benchmark's --set/--variants items become nested workflow config keys
+    merged over its own config; a malformed item is refused by name."""
+    from cystomap.bench.recording import _merge, parse_overrides
+
+    got = parse_overrides(["preprocess.scale=0.5", "atlas.width=1024", "sfm.retry=off",
+                           "atlas.model=false"])
+    assert got == {"preprocess": {"scale": 0.5}, "sfm": {"retry": "off"},
+                   "atlas": {"width": 1024, "model": False}}
+    base = {"phantom": {"enabled": False, "seed": 7}, "sessions": "sessions.tsv"}
+    assert _merge(base, {"phantom": {"seed": 8}}) == {"phantom": {"enabled": False, "seed": 8},
+                                                      "sessions": "sessions.tsv"}
+    with pytest.raises(ValueError, match=r"preprocess\.scale"):
+        parse_overrides(["preprocess.scale"])
+
+
 def test_prefetch_keeps_order_raises_and_stops() -> None:
     assert list(prefetch(iter(range(100)), 4)) == list(range(100))
 

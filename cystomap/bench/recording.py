@@ -2,6 +2,7 @@
 
     python -m cystomap.bench.recording --out results/bench [--lengths 60,120,180]
         [--size 1920x1080] [--scale 1] [--render-scale 1] [--fps 30]
+        [--set preprocess.scale=0.5 ...] [--variants base,preprocess.scale=0.5]
 
 Each length (seconds) is one phantom session with ``trajectory: recording`` (slow scan,
 pauses, returns, fast bends with motion blur; :mod:`cystomap.phantom.recording`), rendered
@@ -10,6 +11,9 @@ when its config matches). Each session then runs through the Snakemake workflow 
 sheet naming the cached video, phantom study off) up to its atlas in ``--cache/run_<tag>``;
 each stage's wall time, CPU time and peak memory come from Snakemake's ``benchmark:`` files.
 The outputs are scored against the phantom's ground truth (:mod:`cystomap.evaluate`).
+``--set KEY=VALUE`` (repeatable) overrides a workflow config key (dotted, value as YAML) for
+every run; ``--variants`` runs each session once per variant (``base`` = no override, or
+``KEY=VALUE[;KEY=VALUE]``), in turn on the same render, for a side-by-side table.
 Writes ``recording.tsv`` and ``recording.md`` under ``--out``.
 """
 
@@ -68,8 +72,37 @@ def render_cached(cache: Path, tag: str, cfg: PhantomConfig, width: int, height:
     return generate_session(truth, 1, cfg, default_camera(width, height))
 
 
-def run_workflow(root: Path, truth: Path, cores: int) -> float:
-    """Video to atlas for the session of ``truth`` in ``root``; wall seconds of Snakemake."""
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` items (dotted keys, YAML values; off/on/yes/no stay strings) as a nested
+    config dict."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set/--variants: {item!r} is not KEY=VALUE")
+        node = out
+        *parents, leaf = key.strip().split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        parsed = yaml.safe_load(value)
+        # YAML 1.1 reads off/on/yes/no as booleans; the workflow's modes are strings
+        if isinstance(parsed, bool) and value.strip().lower() not in ("true", "false"):
+            parsed = value.strip()
+        node[leaf] = parsed
+    return out
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) else v
+    return out
+
+
+def run_workflow(root: Path, truth: Path, cores: int,
+                 overrides: dict[str, Any] | None = None) -> float:
+    """Video to atlas for the session of ``truth`` in ``root`` (workflow config keys
+    ``overrides`` on top); wall seconds of Snakemake."""
     meta = json.loads((truth / "truth.json").read_text())
     camera = json.loads((truth / "camera.json").read_text())
     cam = {k: camera[k] for k in ("width", "height", "fx", "fy", "cx", "cy",
@@ -79,11 +112,12 @@ def run_workflow(root: Path, truth: Path, cores: int) -> float:
                    "date": "2026-01-05", "camera": "phantom",
                    "extent_mm": meta["extent_mm"]}]).to_csv(root / "sessions.tsv", sep="\t",
                                                             index=False)
-    config = {"sessions": "sessions.tsv", "cameras": {"phantom": cam},
-              "phantom": {"enabled": False}}
+    config = _merge({"sessions": "sessions.tsv", "cameras": {"phantom": cam},
+                     "phantom": {"enabled": False}}, overrides or {})
     (root / "config.yaml").write_text(yaml.safe_dump(config))
     stamp = root / "run.json"
-    if stamp.is_file() and (root / "results" / SUBJECT / "s1" / "atlas").is_dir():
+    if (stamp.is_file() and (root / "results" / SUBJECT / "s1" / "atlas").is_dir()
+            and json.loads(stamp.read_text()).get("overrides", {}) == (overrides or {})):
         log.info("%s: reusing the finished run", root)
         return float(json.loads(stamp.read_text())["wall_s"])
     for d in ("results", "benchmarks", "logs", ".snakemake"):
@@ -97,7 +131,7 @@ def run_workflow(root: Path, truth: Path, cores: int) -> float:
     wall = time.perf_counter() - t0
     if done.returncode:
         raise RuntimeError(f"snakemake failed ({done.returncode}); see {root / 'snakemake.log'}")
-    stamp.write_text(json.dumps({"wall_s": wall, "cores": cores}))
+    stamp.write_text(json.dumps({"wall_s": wall, "cores": cores, "overrides": overrides or {}}))
     return wall
 
 
@@ -132,36 +166,51 @@ def score(root: Path, truth: Path) -> dict[str, Any]:
 
 
 def bench(cache: Path, lengths: Sequence[float], fps: float, width: int, height: int,
-          seed: int, cores: int, render_scale: float = 1.0) -> list[dict[str, Any]]:
+          seed: int, cores: int, render_scale: float = 1.0, overrides: Sequence[str] = (),
+          variants: Sequence[str] = ("base",)) -> list[dict[str, Any]]:
+    """A table row per length and variant (see the module's doc)."""
     rows = []
     for seconds in lengths:
-        tag = f"{seconds:g}s_{width}x{height}_{fps:g}fps_seed{seed}" + (
-            "" if render_scale == 1 else f"_render{render_scale:g}")
-        cfg = session_config(seconds, fps, width, seed, render_scale)
-        t0 = time.perf_counter()
-        truth = render_cached(cache, tag, cfg, width, height)
-        render_s = json.loads((truth / "truth.json").read_text())["render_seconds"]
-        log.info("%s: render %.0f s (this call %.0f s)", tag, render_s, time.perf_counter() - t0)
-        root = cache / f"run_{tag}"
-        row: dict[str, Any] = {"session": tag, "seconds": seconds, "render_s": render_s}
-        try:
-            row["video_to_atlas_s"] = round(run_workflow(root, truth, cores), 1)
-        except RuntimeError as exc:
-            log.error("%s: %s", tag, exc)
-            rows.append(row)
-            continue
-        times = stage_times(root)
-        for stage, t in times.items():
-            row[f"{stage}_s"] = round(t["s"], 1)
-            row[f"{stage}_cpu_s"] = round(t["cpu_s"], 1)
-            row[f"{stage}_mb"] = round(t["max_rss_mb"])
-        row["stages_s"] = round(sum(t["s"] for t in times.values()), 1)
-        row["peak_mb"] = round(max(t["max_rss_mb"] for t in times.values()))
-        row["faster_than_recording"] = row["stages_s"] <= seconds
-        row.update(score(root, truth))
-        log.info("%s: %s", tag, row)
-        rows.append(row)
+        for variant in variants:
+            items = [*overrides, *([] if variant == "base" else variant.split(";"))]
+            rows.append(bench_one(cache, seconds, fps, width, height, seed, cores, render_scale,
+                                  items, variant))
     return rows
+
+
+def bench_one(cache: Path, seconds: float, fps: float, width: int, height: int, seed: int,
+              cores: int, render_scale: float, items: Sequence[str],
+              variant: str) -> dict[str, Any]:
+    """One length in one variant (config overrides ``items``): its table row."""
+    tag = f"{seconds:g}s_{width}x{height}_{fps:g}fps_seed{seed}" + (
+        "" if render_scale == 1 else f"_render{render_scale:g}")
+    cfg = session_config(seconds, fps, width, seed, render_scale)
+    t0 = time.perf_counter()
+    truth = render_cached(cache, tag, cfg, width, height)
+    render_s = json.loads((truth / "truth.json").read_text())["render_seconds"]
+    log.info("%s: render %.0f s (this call %.0f s)", tag, render_s, time.perf_counter() - t0)
+    suffix = "".join("_" + i.replace("=", "-").replace(".", "-").replace("/", "-")
+                     for i in items)
+    root = cache / f"run_{tag}{suffix}"
+    row: dict[str, Any] = {"session": tag, "variant": variant, "overrides": ";".join(items),
+                           "seconds": seconds, "render_s": render_s}
+    try:
+        row["video_to_atlas_s"] = round(
+            run_workflow(root, truth, cores, parse_overrides(items)), 1)
+    except RuntimeError as exc:
+        log.error("%s: %s", tag, exc)
+        return row
+    times = stage_times(root)
+    for stage, t in times.items():
+        row[f"{stage}_s"] = round(t["s"], 1)
+        row[f"{stage}_cpu_s"] = round(t["cpu_s"], 1)
+        row[f"{stage}_mb"] = round(t["max_rss_mb"])
+    row["stages_s"] = round(sum(t["s"] for t in times.values()), 1)
+    row["peak_mb"] = round(max(t["max_rss_mb"] for t in times.values()))
+    row["faster_than_recording"] = row["stages_s"] <= seconds
+    row.update(score(root, truth))
+    log.info("%s %s: %s", tag, variant, row)
+    return row
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -179,12 +228,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--cores", type=int, default=2)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="workflow config override for every run (dotted key, YAML value)")
+    p.add_argument("--variants", default="base",
+                   help="comma-separated runs per session: base (no override) or "
+                        "KEY=VALUE[;KEY=VALUE] (e.g. base,preprocess.scale=0.5)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     w, h = (int(v) for v in args.size.split("x"))
     width, height = round(w * args.scale / 2) * 2, round(h * args.scale / 2) * 2
     rows = bench(args.cache or args.out / "recording", [float(s) for s in args.lengths.split(",")],
-                 args.fps, width, height, args.seed, args.cores, args.render_scale)
+                 args.fps, width, height, args.seed, args.cores, args.render_scale, args.set,
+                 args.variants.split(","))
     write_table(rows, args.out, "recording",
                 "Recording-like phantom sessions, video to atlas (Snakemake benchmark files; times "
                 f"in s, wall and CPU of each job, memory = peak RSS in MB; {time.strftime('%Y-%m-%d')})")
