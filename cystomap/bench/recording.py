@@ -162,6 +162,10 @@ def score(root: Path, truth: Path) -> dict[str, Any]:
         "rmse_mm": traj.get("rmse_mm"),
         "scale_error_pct": 100 * traj["scale_error"] if "scale_error" in traj else None,
         "coverage_error_pp": r.get("atlas", {}).get("coverage_error_pp"),
+        # the atlas against the true albedo (cystomap.evaluate.surface): structure, detail
+        # in place, sharpness (1 = as sharp as the truth)
+        **{f"atlas_{k}": r.get("atlas", {}).get(k)
+           for k in ("ssim_stretched", "detail_correlation", "sharpness_ratio")},
     }
 
 
