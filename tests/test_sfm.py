@@ -366,6 +366,20 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
         assert sorted(p.name for p in root.iterdir()) == ["sfm"], results
     # black frames (too few features at any size) do not count against the share
     black = {"frames_in": 100, "registered": 93, "dropped_reasons": {"too few features": 5}}
+    # a flag of the rotation check alone maps again only when asked (retry_on_rotation_flag)
+    rot = {"frames_in": 100, "registered": 100,
+           "consistency": {"consistent": False, "reason": "rotation drift",
+                           "halves": {"consistent": True}, "rotation": {"flagged": True}}}
+    assert retry.flagged_by(rot) == ["rotation"]
+    assert retry.reason(retry.Run(640, rot, None, tmp_path, 1.0, 1.0), 0.95) is None
+    assert "rotation drift" in (retry.reason(retry.Run(640, rot, None, tmp_path, 1.0, 1.0),
+                                             0.95, on_rotation_flag=True) or "")
+    both = {**rot, "consistency": {**rot["consistency"], "halves": {"consistent": False}}}
+    assert retry.flagged_by(both) == ["halves", "rotation"]
+    assert retry.reason(retry.Run(640, both, None, tmp_path, 1.0, 1.0), 0.95)
+    short = {**rot, "registered": 90}  # short as well: mapped again for that
+    assert "90 of the 100" in (retry.reason(retry.Run(640, short, None, tmp_path, 1.0, 1.0),
+                                            0.95) or "")
     run = retry.Run(640, black, None, tmp_path, 1.0, 1.0)
     assert retry.mappable(black) == 95 and retry.reason(run, 0.95) is None
     black["dropped_reasons"] = {"no geometrically verified match with any paired frame": 5}

@@ -212,6 +212,12 @@ class SfmConfig:
     # two, the larger when the other holds less than this share of its frames, else the one
     # the self-checks pass, then the larger. 0 = never
     retry_registered_share: float = setting(0.95, "[0, 1]")
+    # a flag of the rotation self-check alone (rotation_check) calls for the second mapping
+    # too. Off: where measured on the phantom (glints:4, glints:8, uncal:8, deformed:8) that
+    # flag was false and the second mapping (160-250 CPU-s; 270 on a 60 s 1080p recording)
+    # gave the same or a worse model; the flag stays a warning in quality.json, the log and
+    # the report (README, "Rotation flags no longer map again")
+    retry_on_rotation_flag: bool = setting(False)
 
     # --- metric scale ---
     # statistical outlier removal of points before measuring the extent or volume:

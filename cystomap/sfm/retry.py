@@ -10,7 +10,9 @@ off with a 55 % scale error. Joining the pieces afterwards did not work (a handf
 1280 px the same session gave 124 of 124 frames, 0.07 mm.
 
 So when the first model holds fewer than ``retry_registered_share`` of the frames, a
-self-check flags it, or the mapping fails, and the features were detected below the lit
+self-check flags it (a flag of the rotation check alone only with ``retry_on_rotation_flag``:
+on the phantom those flags were false and the second mapping did not help), or the mapping
+fails, and the features were detected below the lit
 field's size, the session is mapped again beside the output (``<out>.retry``) with
 ``max_image_size`` doubled; the better model is kept (:func:`better`) and quality.json's
 ``attempts`` lists both runs with their size, frames, flags and seconds.
@@ -78,15 +80,33 @@ class Run:
                 "time_s": round(self.time_s, 3), "cpu_s": round(self.cpu_s, 3)}
 
 
-def reason(run: Run, share: float) -> str | None:
-    """Why ``run`` should be mapped again (None: it need not be)."""
+def flagged_by(quality: dict[str, Any]) -> list[str]:
+    """The self-checks that flagged a model: "halves", "rotation", or "other"."""
+    c = quality.get("consistency")
+    if not isinstance(c, dict) or c.get("consistent") is not False:
+        return []
+    halves, rotation = c.get("halves"), c.get("rotation")
+    by = []
+    if isinstance(halves, dict) and halves.get("consistent") is False:
+        by.append("halves")
+    if isinstance(rotation, dict) and rotation.get("flagged") is True:
+        by.append("rotation")
+    return by or ["other"]
+
+
+def reason(run: Run, share: float, on_rotation_flag: bool = False) -> str | None:
+    """Why ``run`` should be mapped again (None: it need not be). A flag of the rotation
+    check alone counts only with ``on_rotation_flag`` (SfmConfig.retry_on_rotation_flag)."""
     if share <= 0:
         return None
     if run.error is not None:
         return f"the mapping failed ({str(run.error).split(';')[0]})"
     q = run.quality or {}
     if run.flagged:
-        return f"the self-check flagged the model ({q['consistency'].get('reason')})"
+        if on_rotation_flag or flagged_by(q) != ["rotation"]:
+            return f"the self-check flagged the model ({q['consistency'].get('reason')})"
+        log.info("sfm: only the rotation self-check flagged the model; not mapped again for "
+                 "that (sfm.retry_on_rotation_flag), the flag stays in quality.json")
     n = mappable(q)
     if run.registered < share * n:
         return (f"only {run.registered} of the {n} frames with features are in the model (less "
@@ -151,7 +171,7 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
     """Run ``attempt`` into ``out_dir``; map again with finer features where :func:`reason`
     says so and :func:`finer` can; keep the better model in ``out_dir`` (see the module)."""
     first = _timed(attempt, out_dir, cfg, failed_dir(out_dir))
-    why = reason(first, cfg.retry_registered_share)
+    why = reason(first, cfg.retry_registered_share, cfg.retry_on_rotation_flag)
     second_cfg = finer(cfg, working_scale) if why else None
     if second_cfg is None:
         if why:
