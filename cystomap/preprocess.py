@@ -117,7 +117,10 @@ class PreprocessConfig:
     # colour frames (for the atlas), so the wall around them is not brightened. The enhanced
     # frames (for matching) keep the plain fit: CLAHE follows them anyway, and changing them
     # moved the SfM of the entry frames on a glint test session (flagged, 7.4 mm off).
-    level_exclude_dark: bool = True
+    # Off by default: on dev FROC pairs 300, 301, 306, 308 and no-change 1300 (same frames,
+    # SfM and mesh; colour frames and atlases rebuilt) change detection found 18/24 lesions
+    # with it and 23/24 without, 0 false regions either way (README, "The lumen refit off").
+    level_exclude_dark: bool = False
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
     level_mean: float = setting(0.0, "[0, 255]")
     # CLAHE clip limit for the enhanced images (0 = no CLAHE, levelled grey only).
