@@ -44,18 +44,21 @@ def test_recording_config() -> None:
         PhantomConfig(trajectory="zigzag")
 
 
-def test_benchmark_overrides_nest_and_merge() -> None:
+def test_benchmark_overrides_nest_and_merge(tmp_path: Path) -> None:
     """The recording benchmark's --set/--variants items become nested workflow config keys
     merged over its own config; a malformed item is refused by name."""
-    from cystomap.bench.recording import _merge, parse_overrides
+    from cystomap.bench.recording import parse_overrides, workflow_config
 
     got = parse_overrides(["preprocess.scale=0.5", "atlas.width=1024", "sfm.retry=off",
                            "atlas.model=false"])
     assert got == {"preprocess": {"scale": 0.5}, "sfm": {"retry": "off"},
                    "atlas": {"width": 1024, "model": False}}
-    base = {"phantom": {"enabled": False, "seed": 7}, "sessions": "sessions.tsv"}
-    assert _merge(base, {"phantom": {"seed": 8}}) == {"phantom": {"enabled": False, "seed": 8},
-                                                      "sessions": "sessions.tsv"}
+    cam = dict(width=640, height=360, fx=470.0, fy=470.0, cx=319.5, cy=179.5, k1=-0.1, k2=0.0,
+               p1=0.0, p2=0.0, k3=0.0)
+    (tmp_path / "camera.json").write_text(json.dumps({**cam, "name": "phantom"}))
+    config = workflow_config(tmp_path, parse_overrides(["phantom.seed=8", "cameras.phantom.fx=500"]))
+    assert config == {"phantom": {"enabled": False, "seed": 8}, "sessions": "sessions.tsv",
+                      "cameras": {"phantom": {**cam, "fx": 500}}}
     with pytest.raises(ValueError, match=r"preprocess\.scale"):
         parse_overrides(["preprocess.scale"])
 

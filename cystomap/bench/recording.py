@@ -92,11 +92,18 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
-def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in extra.items():
-        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) else v
-    return out
+def workflow_config(truth: Path, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The workflow config of a benchmark run on the session of ``truth`` (its camera, the
+    sessions sheet, phantom study off), ``overrides`` merged over it key by key."""
+    from snakemake.utils import update_config
+
+    camera = json.loads((truth / "camera.json").read_text())
+    cam = {k: camera[k] for k in ("width", "height", "fx", "fy", "cx", "cy",
+                                  "k1", "k2", "p1", "p2", "k3")}
+    config = {"sessions": "sessions.tsv", "cameras": {"phantom": cam},
+              "phantom": {"enabled": False}}
+    update_config(config, overrides or {})
+    return config
 
 
 def run_workflow(root: Path, truth: Path, cores: int,
@@ -104,22 +111,18 @@ def run_workflow(root: Path, truth: Path, cores: int,
     """Video to atlas for the session of ``truth`` in ``root`` (workflow config keys
     ``overrides`` on top); wall seconds of Snakemake."""
     meta = json.loads((truth / "truth.json").read_text())
-    camera = json.loads((truth / "camera.json").read_text())
-    cam = {k: camera[k] for k in ("width", "height", "fx", "fy", "cx", "cy",
-                                  "k1", "k2", "p1", "p2", "k3")}
     root.mkdir(parents=True, exist_ok=True)
     pd.DataFrame([{"subject": SUBJECT, "session": "s1", "video": str((truth / "video.mp4").resolve()),
                    "date": "2026-01-05", "camera": "phantom",
                    "extent_mm": meta["extent_mm"]}]).to_csv(root / "sessions.tsv", sep="\t",
                                                             index=False)
-    config = _merge({"sessions": "sessions.tsv", "cameras": {"phantom": cam},
-                     "phantom": {"enabled": False}}, overrides or {})
-    (root / "config.yaml").write_text(yaml.safe_dump(config))
+    (root / "config.yaml").write_text(yaml.safe_dump(workflow_config(truth, overrides)))
     stamp = root / "run.json"
-    if (stamp.is_file() and (root / "results" / SUBJECT / "s1" / "atlas").is_dir()
-            and json.loads(stamp.read_text()).get("overrides", {}) == (overrides or {})):
+    done_before = json.loads(stamp.read_text()) if stamp.is_file() else None
+    if (done_before is not None and (root / "results" / SUBJECT / "s1" / "atlas").is_dir()
+            and done_before.get("overrides", {}) == (overrides or {})):
         log.info("%s: reusing the finished run", root)
-        return float(json.loads(stamp.read_text())["wall_s"])
+        return float(done_before["wall_s"])
     for d in ("results", "benchmarks", "logs", ".snakemake"):
         shutil.rmtree(root / d, ignore_errors=True)
     cmd = [sys.executable, "-m", "snakemake", f"results/{SUBJECT}/s1/atlas", "-s",

@@ -105,8 +105,9 @@ def reason(run: Run, share: float, on_rotation_flag: bool = False) -> str | None
     if run.flagged:
         if on_rotation_flag or flagged_by(q) != ["rotation"]:
             return f"the self-check flagged the model ({q['consistency'].get('reason')})"
-        log.info("sfm: only the rotation self-check flagged the model; not mapped again for "
-                 "that (sfm.retry_on_rotation_flag), the flag stays in quality.json")
+        log.info("sfm: only the rotation self-check flagged the model: that alone does not call "
+                 "for a second mapping (sfm.retry_on_rotation_flag); the flag stays in "
+                 "quality.json")
     n = mappable(q)
     if run.registered < share * n:
         return (f"only {run.registered} of the {n} frames with features are in the model (less "
