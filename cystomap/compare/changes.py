@@ -51,7 +51,9 @@ Checks (each counted in ``compare.json``): the region lies on reconstructed wall
 distance to the nearest SfM point of each session ≤ ``max_point_distance_mm``), is mostly
 surrounded by compared wall (``min_enclosed``), session A shows wall there, not an opening
 (``min_luminance_a``), and its texture is photo-consistent in session B's frames
-(``max_inconsistency``, :mod:`cystomap.compare.consistency`), it is a patch rather than a
+(``max_inconsistency``, :mod:`cystomap.compare.consistency`; a region B's frames disagree on
+but A's frames agree on at the same site is kept: the wall there changed its relief, as a
+raised lesion does), it is a patch rather than a
 line (length / width on the wall at most ``max_elongation``: a vessel or edge left
 misaligned gives a thin, long difference; phantom lesions measured 1.0-1.7, cut ones up to
 2.8, vessel residues 4-6).
@@ -133,7 +135,7 @@ PEAK_PERCENTILE = 99.0
 CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2",
                   "diameter_mm", "mean_difference", "score", "peak_significance",
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
-                  "enclosed", "luminance_a", "luminance_b",
+                  "inconsistency_a", "enclosed", "luminance_a", "luminance_b",
                   "point_distance_mm", "elongation", "observed_share", "delta_e",
                   "local_delta_e", "expected_false", "mass")
 
@@ -156,6 +158,8 @@ class Region:
     atlas_col: float  # centroid in session B's (full-size) atlas
     atlas_row: float
     inconsistency: float | None = None  # photo-consistency in B's frames (None: not tested)
+    # the same in A's frames at the same site (tested only when B's is over the limit)
+    inconsistency_a: float | None = None
     enclosed: float = 1.0  # share of a ring around the region that both sessions saw
     luminance_a: float = 1.0  # median luminance in the region / on the compared wall, A
     luminance_b: float = 1.0  # the same in B
@@ -177,6 +181,7 @@ class Region:
                 "atlas_col": self.atlas_col, "atlas_row": self.atlas_row,
                 "pixels": len(self.pixels),
                 "inconsistency": "" if self.inconsistency is None else self.inconsistency,
+                "inconsistency_a": "" if self.inconsistency_a is None else self.inconsistency_a,
                 "enclosed": self.enclosed,
                 "luminance_a": self.luminance_a, "luminance_b": self.luminance_b,
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
@@ -471,11 +476,18 @@ class _Checks:
         if verify and self.verify is not None:
             consistency = self.verify(pix, ring_pix)
             value = consistency.get("inconsistency")
+            value_a = consistency.get("inconsistency_a")
             if value is not None and value > cfg.max_inconsistency:
-                log.debug("changes: region at %s: its colours disagree across session B's "
-                          "frames (inconsistency %.2f > %.2f; not on the wall)", where, value,
-                          cfg.max_inconsistency)
-                return "inconsistent", None
+                if value_a is None or value_a > cfg.max_inconsistency:
+                    log.debug("changes: region at %s: its colours disagree across session B's "
+                              "frames (inconsistency %.2f > %.2f; A's: %s; not on the wall)",
+                              where, value, cfg.max_inconsistency,
+                              "not tested" if value_a is None else f"{value_a:.2f}")
+                    return "inconsistent", None
+                log.info("changes: region at %s: its colours disagree across session B's frames "
+                         "(inconsistency %.2f) but not across A's at the same site (%.2f): "
+                         "the wall's relief changed there (a raised lesion), kept", where,
+                         value, value_a)
         a_all = flat_area[pix_all]
         area = float(a_all.sum())
         if area < min_area:
@@ -525,7 +537,8 @@ class _Checks:
             score=0.0, peak_significance=peak,
             mean_significance=float(np.average(flat_sig[pix], weights=a)),
             atlas_col=float(col[0]), atlas_row=float(row[0]),
-            inconsistency=consistency.get("inconsistency"), enclosed=enclosed,
+            inconsistency=consistency.get("inconsistency"),
+            inconsistency_a=consistency.get("inconsistency_a"), enclosed=enclosed,
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(self.lum_b[pix])) / self.lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,

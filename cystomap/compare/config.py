@@ -184,8 +184,10 @@ class CompareConfig:
     neck_ratio: bool = setting(False)
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a
     # region whose colours spread across the frames that see it more than this many times
-    # as much as its ring's is not on the wall (aperture, mesh far off) and is dropped
-    # (0 = no check); at most consistency_views frames are read per region
+    # as much as its ring's is not on the wall (aperture, mesh far off) and is dropped,
+    # unless session A's frames agree at the same site (at most this much spread): then the
+    # wall's relief changed there (a raised lesion the mesh does not follow) and the region
+    # is kept (0 = no check); at most consistency_views frames are read per region
     max_inconsistency: float = setting(2.5, ">= 0")
     consistency_views: int = setting(12, ">= 3")
     # morphological opening / closing radius (model units)

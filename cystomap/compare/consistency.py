@@ -11,6 +11,11 @@ every point is sampled in up to ``consistency_views`` frames (exposure-normalise
 on the ring); the spread across frames (robust, in log units) is compared between the region
 and its ring. ``inconsistency = spread(region) / spread(ring)``: about 1 for wall texture, a
 lesion included, several times larger where the frames disagree.
+
+A raised lesion new in session B (papillary fronds several millimetres high) is real wall
+that B's smooth mesh does not follow, so B's frames disagree on it too. The stage therefore
+tests the same site in session A's frames when B's disagree: where A's agree, the relief is
+new in B and the region is kept; the aperture disagrees in both sessions.
 """
 
 from __future__ import annotations

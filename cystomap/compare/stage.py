@@ -189,7 +189,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             t = lap("difference", t)
             verify = None
             if cfg.max_inconsistency > 0:
-                verify = _consistency_check(b, diff, atlas_b, cfg)
+                verify = _consistency_check(a, b, diff, atlas_a, atlas_b, a_points, reg, cfg)
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
             t = lap("changes", t)
@@ -339,26 +339,46 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
     return diff, info
 
 
-def _consistency_check(b: SessionPaths, diff: Any, atlas_b: SessionAtlas,
+def _consistency_check(a: SessionPaths, b: SessionPaths, diff: Any, atlas_a: SessionAtlas,
+                       atlas_b: SessionAtlas, a_points: np.ndarray, reg: Registration,
                        cfg: CompareConfig) -> Any:
-    """``verify`` callback of :func:`detect`: photo-consistency in session B's frames."""
+    """``verify`` callback of :func:`detect`: photo-consistency in session B's frames and,
+    where B's frames disagree, in A's frames at the same site (``a_points``: the grid's
+    points warped into A)."""
     from cystomap.compare.consistency import ViewSet, inconsistency
 
     state: dict[str, Any] = {}
     pts = diff.grid.points.reshape(-1, 3)
     nrm = diff.grid.normals.reshape(-1, 3)
+    pts_a = np.asarray(a_points).reshape(-1, 3)
+    # B's normals in A's frame: the similarity A → B rotates n_a into n_b = R n_a
+    nrm_a = nrm @ reg.transform.rotation if reg.transform is not None else None
+
+    def views(key: str, paths: SessionPaths) -> Any:
+        if key not in state:
+            try:
+                state[key] = ViewSet.load(paths.sfm, paths.preprocessed)
+            except InputError as exc:
+                log.warning("compare: photo-consistency check in session %s skipped (%s)",
+                            key, exc)
+                state[key] = None
+        return state[key]
 
     def verify(region: np.ndarray, ring: np.ndarray) -> dict[str, Any]:
-        if "views" not in state:
-            try:
-                state["views"] = ViewSet.load(b.sfm, b.preprocessed)
-            except InputError as exc:
-                log.warning("compare: photo-consistency check skipped (%s)", exc)
-                state["views"] = None
-        if state["views"] is None:
+        vs_b = views("B", b)
+        if vs_b is None:
             return {}
-        return inconsistency(state["views"], atlas_b.rays, pts[region], nrm[region], pts[ring],
-                             nrm[ring], cfg.consistency_views, cfg.seed)
+        out = inconsistency(vs_b, atlas_b.rays, pts[region], nrm[region], pts[ring], nrm[ring],
+                            cfg.consistency_views, cfg.seed)
+        value = out.get("inconsistency")
+        if value is None or value <= cfg.max_inconsistency or nrm_a is None:
+            return out
+        vs_a = views("A", a)
+        if vs_a is not None:
+            in_a = inconsistency(vs_a, atlas_a.rays, pts_a[region], nrm_a[region], pts_a[ring],
+                                 nrm_a[ring], cfg.consistency_views, cfg.seed)
+            out["inconsistency_a"] = in_a.get("inconsistency")
+        return out
 
     return verify
 
