@@ -170,6 +170,10 @@ class _Scores:
     matched: np.ndarray  # bool: compared with at least one overlapping frame of its segment
 
 
+# a frame's gain-normalised grey and its corners (see _Tracker.prepare)
+_Prepared = tuple[np.ndarray, np.ndarray | None]
+
+
 @dataclass
 class _Measure:
     """What one frame shows, measured on its own (no other frame needed)."""
@@ -232,16 +236,19 @@ def _score(greys: Iterable[tuple[int, float, np.ndarray]], cfg: FramesConfig, pr
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     t0 = last_log = time.perf_counter()
 
-    def measured() -> Iterator[tuple[int, float, np.ndarray, _Measure]]:
+    def measured() -> Iterator[tuple[int, float, np.ndarray, _Measure, _Prepared]]:
         for index, time_s, grey in greys:
-            yield index, time_s, grey, _measure(grey, cfg, probe, kernel)
+            m = _measure(grey, cfg, probe, kernel)
+            # the tracker's corners too: the main thread is the bottleneck (tracking, chained)
+            yield (index, time_s, grey, m,
+                   tracker.prepare(grey, m.glints, m.usable and m.look is not None))
 
-    for index, time_s, grey, m in prefetch(measured(), _DECODE_AHEAD):
+    for index, time_s, grey, m, prepared in prefetch(measured(), _DECODE_AHEAD):
         sat.append(m.saturated)
         dark.append(m.dark)
         sharp.append(m.sharpness)
         look = m.look
-        seg, transform = tracker.add(grey, m.glints, m.usable, look)
+        seg, transform = tracker.add(grey, m.glints, m.usable, look, prepared)
         segments.append(seg)
         transforms.append(transform)
         recent.pop(index - reach - 1, None)

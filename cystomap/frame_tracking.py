@@ -122,6 +122,16 @@ class _Tracker:
         self.lk = {"winSize": (21, 21), "maxLevel": 3,
                    "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
 
+    def prepare(self, grey: np.ndarray, glints: np.ndarray | None, corners: bool,
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The gain-normalised ``grey`` and, when ``corners``, the corners it would be tracked
+        from as a reference (None: too few). Reads only the tracker's settings, so a worker
+        thread can prepare frames ahead of :meth:`add`."""
+        mean = float(grey[self.mask > 0].mean()) if self.mask.any() else float(grey.mean())
+        if mean >= 1.0:  # gain-normalise: auto-exposure steps must not break Lucas-Kanade
+            grey = cv2.convertScaleAbs(grey, alpha=128.0 / mean)
+        return grey, self._corners(grey, glints) if corners else None
+
     def _corners(self, grey: np.ndarray, glints: np.ndarray | None) -> np.ndarray | None:
         mask = self.mask if glints is None else np.where(glints, 0, self.mask).astype(np.uint8)
         # a low quality level: the strongest corners win anyway, and one glint left over
@@ -164,16 +174,19 @@ class _Tracker:
         return np.vstack([a, [0.0, 0.0, 1.0]])
 
     def add(self, grey: np.ndarray, glints: np.ndarray | None = None, usable: bool = True,
-            look: _Look | None = None) -> tuple[int, np.ndarray]:
+            look: _Look | None = None,
+            prepared: tuple[np.ndarray, np.ndarray | None] | None = None,
+            ) -> tuple[int, np.ndarray]:
         """Track ``grey``; returns (segment, transform), (-1, NaNs) if untracked.
 
         ``glints`` (bool image, optional) marks specular highlights: no corners there.
         ``usable`` False (a dark or overexposed frame) is tracked if possible but never becomes
         the reference nor starts a segment; neither does a frame without ``look``.
+        ``prepared``: :meth:`prepare`'s result for this frame (with corners when ``usable`` and
+        ``look``), computed here when not given.
         """
-        mean = float(grey[self.mask > 0].mean()) if self.mask.any() else float(grey.mean())
-        if mean >= 1.0:  # gain-normalise: auto-exposure steps must not break Lucas-Kanade
-            grey = cv2.convertScaleAbs(grey, alpha=128.0 / mean)
+        wants = usable and look is not None
+        grey, pts = prepared if prepared is not None else self.prepare(grey, glints, wants)
         self.index += 1
         if self.held is not None:
             self.held_age += 1
@@ -197,11 +210,11 @@ class _Tracker:
             if usable and look is not None and not (
                     ref.look is not None
                     and _matched_ratio(ref.look, look, step) < self.keep_rel):
-                pts = self._corners(grey, glints)
                 if pts is not None:
                     self.ref = _Ref(grey, pts, transform, ref.segment, look, self.index)
             return ref.segment, transform
-        pts = self._corners(grey, glints) if usable and look is not None else None
+        if not wants:
+            pts = None
         if pts is None:  # dark, overexposed or featureless: stay untracked
             return -1, np.full((3, 3), np.nan)
         if self.held is None and self.ref is not None:
