@@ -376,3 +376,40 @@ def test_video_is_decoded_once(pan_video: Path, tmp_path: Path, monkeypatch: pyt
     for i in kept:
         name = f"f{i:06d}.png"
         assert (out / name).read_bytes() == (reference / name).read_bytes()
+
+
+def test_tracker_prepared_ahead_tracks_the_same(pan_video: Path) -> None:
+    """The scoring worker prepares each frame's normalised grey and corners ahead of the
+    tracking (Tracker.prepare); the chained motion is exactly that of preparing in add()."""
+    from cystomap.frame_scoring import _finish_probe, _measure, _new_probe, to_analysis
+    from cystomap.frame_tracking import _Tracker
+
+    cfg = FramesConfig()
+    cap = cv2.VideoCapture(str(pan_video))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    cap.release()
+    probe = _new_probe(pan_video, frames[0], FPS, cfg, None)
+    greys = [to_analysis(f, (probe.aw, probe.ah)) for f in frames]
+    probe = _finish_probe(pan_video, probe, greys, cfg)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    inline, ahead = _Tracker(probe, cfg), _Tracker(probe, cfg)
+    shifts = []
+    for grey in greys:
+        m = _measure(grey, cfg, probe, kernel)
+        seg_a, t_a = inline.add(grey, m.glints, m.usable, m.look)
+        prepared = ahead.prepare(grey, m.glints, m.usable and m.look is not None)
+        seg_b, t_b = ahead.add(grey, m.glints, m.usable, m.look, prepared)
+        assert seg_a == seg_b
+        assert np.array_equal(t_a, t_b, equal_nan=True)
+        if seg_a == 0:
+            shifts.append(t_a[0, 2])
+    # it tracked the pan: the first segment spans most frames, moving SPEED px a frame
+    # (at analysis size) in one direction
+    assert len(shifts) > 0.8 * N  # 58 of 60 measured
+    steps = np.abs(np.diff(shifts)) * probe.width / probe.aw
+    assert np.median(steps) == pytest.approx(SPEED, rel=0.25)
