@@ -26,7 +26,7 @@ import scipy.sparse.linalg as spla
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError
-from cystomap.frame_tracking import _Look, _matched_ratio, _Tracker
+from cystomap.frame_tracking import Prepared, _Look, _matched_ratio, _Tracker
 from cystomap.parallel import prefetch
 from cystomap.video import erode, fov_mask, static_pixels, temporal_std
 
@@ -170,10 +170,6 @@ class _Scores:
     matched: np.ndarray  # bool: compared with at least one overlapping frame of its segment
 
 
-# a frame's gain-normalised grey and its corners (see _Tracker.prepare)
-_Prepared = tuple[np.ndarray, np.ndarray | None]
-
-
 @dataclass
 class _Measure:
     """What one frame shows, measured on its own (no other frame needed)."""
@@ -236,7 +232,7 @@ def _score(greys: Iterable[tuple[int, float, np.ndarray]], cfg: FramesConfig, pr
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     t0 = last_log = time.perf_counter()
 
-    def measured() -> Iterator[tuple[int, float, np.ndarray, _Measure, _Prepared]]:
+    def measured() -> Iterator[tuple[int, float, np.ndarray, _Measure, Prepared]]:
         for index, time_s, grey in greys:
             m = _measure(grey, cfg, probe, kernel)
             # the tracker's corners too: the main thread is the bottleneck (tracking, chained)

@@ -25,6 +25,9 @@ _MIN_OVERLAP = 0.25
 # sharpness is compared on cells of this many analysis pixels a side
 _CELL_PX = 4
 
+# a frame's gain-normalised grey and its corners (see _Tracker.prepare)
+Prepared = tuple[np.ndarray, np.ndarray | None]
+
 
 @dataclass
 class _Look:
@@ -122,8 +125,7 @@ class _Tracker:
         self.lk = {"winSize": (21, 21), "maxLevel": 3,
                    "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
 
-    def prepare(self, grey: np.ndarray, glints: np.ndarray | None, corners: bool,
-                ) -> tuple[np.ndarray, np.ndarray | None]:
+    def prepare(self, grey: np.ndarray, glints: np.ndarray | None, corners: bool) -> Prepared:
         """The gain-normalised ``grey`` and, when ``corners``, the corners it would be tracked
         from as a reference (None: too few). Reads only the tracker's settings, so a worker
         thread can prepare frames ahead of :meth:`add`."""
@@ -175,8 +177,7 @@ class _Tracker:
 
     def add(self, grey: np.ndarray, glints: np.ndarray | None = None, usable: bool = True,
             look: _Look | None = None,
-            prepared: tuple[np.ndarray, np.ndarray | None] | None = None,
-            ) -> tuple[int, np.ndarray]:
+            prepared: Prepared | None = None) -> tuple[int, np.ndarray]:
         """Track ``grey``; returns (segment, transform), (-1, NaNs) if untracked.
 
         ``glints`` (bool image, optional) marks specular highlights: no corners there.
@@ -187,6 +188,8 @@ class _Tracker:
         """
         wants = usable and look is not None
         grey, pts = prepared if prepared is not None else self.prepare(grey, glints, wants)
+        if not wants:
+            pts = None
         self.index += 1
         if self.held is not None:
             self.held_age += 1
@@ -207,14 +210,12 @@ class _Tracker:
             if ref is self.held:  # back on the scene from before the break
                 self.ref, self.held = ref, None
             transform = step @ ref.transform
-            if usable and look is not None and not (
+            if wants and not (
                     ref.look is not None
                     and _matched_ratio(ref.look, look, step) < self.keep_rel):
                 if pts is not None:
                     self.ref = _Ref(grey, pts, transform, ref.segment, look, self.index)
             return ref.segment, transform
-        if not wants:
-            pts = None
         if pts is None:  # dark, overexposed or featureless: stay untracked
             return -1, np.full((3, 3), np.nan)
         if self.held is None and self.ref is not None:
