@@ -239,7 +239,8 @@ class SfmConfig:
     colour_max_frames: int = setting(48, ">= 1")
 
     # --- run ---
-    # threads for feature extraction and matching (their results do not depend on it)
+    # threads for feature extraction, matching and densification (their results do not
+    # depend on it)
     num_threads: int = setting(2, ">= 1")
     # threads for incremental mapping and bundle adjustment. Multi-threaded Ceres sums in a
     # varying order, and on weak input the tiny differences change which frames register:

@@ -19,8 +19,10 @@ large shifts are rejected. The caller re-runs bundle adjustment afterwards.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections import Counter, OrderedDict, defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +33,7 @@ import numpy as np
 from cystomap.camera import colmap_to_opencv_xy, opencv_to_colmap_xy
 from cystomap.errors import InputError
 from cystomap.images import sample_bilinear
+from cystomap.parallel import ordered_map
 from cystomap.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
@@ -54,15 +57,16 @@ class DensifyStats:
 
 
 class _Frames:
-    """Full-size frames (float32) and their gradients; a small cache."""
+    """Full-size frames (float32) with their x and y gradients as 3 channels (sampled at
+    once); a small cache."""
 
     def __init__(self, image_dir: Path, capacity: int = 12) -> None:
         self.image_dir = image_dir
         self.capacity = capacity
-        self._cache: OrderedDict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
         self.reads = 0
 
-    def get(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def get(self, name: str) -> np.ndarray:
         if name in self._cache:
             self._cache.move_to_end(name)
             return self._cache[name]
@@ -73,10 +77,10 @@ class _Frames:
         img = img.astype(np.float32)
         ix = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
         iy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-        self._cache[name] = (img, ix, iy)
+        self._cache[name] = cv2.merge([img, ix, iy])
         if len(self._cache) > self.capacity:
             self._cache.popitem(last=False)
-        return img, ix, iy
+        return self._cache[name]
 
 
 def _grid(patch_px: int) -> tuple[np.ndarray, np.ndarray]:
@@ -160,20 +164,21 @@ def _templates(img: np.ndarray, ref_cv: np.ndarray, inv: np.ndarray, gx: np.ndar
     return tpl, std, inside.all(axis=1)
 
 
-def _align(frame: tuple[np.ndarray, np.ndarray, np.ndarray], tpl: np.ndarray,
+def _align(stack: np.ndarray, tpl: np.ndarray,
            start_cv: np.ndarray, gx: np.ndarray, gy: np.ndarray, iterations: int
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton on the translation of each patch: positions (OpenCV pixels), ZNCC of the
-    final fit, and whether the patch stayed inside the frame."""
-    img, ix, iy = frame
+    """Gauss-Newton on the translation of each patch in a frame (``_Frames.get``: grey, x and
+    y gradients): positions (OpenCV pixels), ZNCC of the final fit, and whether the patch
+    stayed inside the frame."""
     pos = start_cv.astype(np.float32).copy()
     live = np.ones(len(pos), dtype=bool)
+    h, w = stack.shape[:2]
     for _ in range(iterations):
         px = pos[:, 0:1] + gx
         py = pos[:, 1:2] + gy
-        val, inside = _sample(img, px, py)
-        dx, _ = _sample(ix, px, py)
-        dy, _ = _sample(iy, px, py)
+        inside = (px >= 0) & (py >= 0) & (px <= w - 1) & (py <= h - 1)
+        samples = sample_bilinear(stack, px.ravel(), py.ravel())
+        val, dx, dy = (samples[:, c].reshape(px.shape) for c in range(3))
         live &= inside.all(axis=1)
         mean = val.mean(axis=1, keepdims=True)
         std = np.sqrt(((val - mean) ** 2).mean(axis=1, keepdims=True)) + 1e-6
@@ -192,7 +197,9 @@ def _align(frame: tuple[np.ndarray, np.ndarray, np.ndarray], tpl: np.ndarray,
         pos += step
         if np.abs(step).max(initial=0.0) < 1e-3:
             break
-    val, inside = _sample(img, pos[:, 0:1] + gx, pos[:, 1:2] + gy)
+    px, py = pos[:, 0:1] + gx, pos[:, 1:2] + gy
+    inside = (px >= 0) & (py >= 0) & (px <= w - 1) & (py <= h - 1)
+    val = sample_bilinear(stack, px.ravel(), py.ravel())[:, 0].reshape(px.shape)
     zncc = (_normalise(val)[0] * tpl).mean(axis=1)
     return pos.astype(np.float64), zncc, live & inside.all(axis=1)
 
@@ -219,96 +226,99 @@ def _triangulate(ps: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return h[:, :3] / h[:, 3:4]
 
 
-def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
-            stride: int = 1, masks_dir: Path | None = None) -> DensifyStats:
-    """Add full-size corner tracks to ``rec`` (see the module docstring); in place.
+@dataclass(frozen=True)
+class _Reference:
+    """A reference frame: its position in the model's frame order, image id, the frames its
+    corners are aligned into, and its model points (COLMAP pixels, world coordinates)."""
 
-    ``masks_dir`` (optional) holds per-frame masks (0 = specular glint): no corner is taken,
-    and no alignment accepted, where a patch would touch a glint of its frame.
+    n: int
+    image_id: int
+    targets: list[int]
+    points_xy: np.ndarray
+    points_xyz: np.ndarray
 
-    With keyframes every ``stride`` frames (dense video), each frame gets 1/stride of the
-    corners and is aligned to every ``stride``-th following frame, so the cost and the
-    baselines of the tracks stay those of the keyframes. Each keyframe's corners are also
-    aligned into the ``densify_loop_neighbors`` later frames beyond that window that share the
-    most model points with it (loop closures, against drift)."""
-    import pycolmap
 
-    gx, gy = _grid(cfg.densify_patch_px)
-    half = cfg.densify_patch_px // 2
-    ids, names, poses, ks = _model_arrays(rec)
-    stride = max(1, stride)
-    n_wanted = max(1, round(cfg.densify_corners / stride))
-    frames = _Frames(image_dir, capacity=cfg.densify_neighbors * stride + 3)
-    margin = half + 2
-    box = np.ones((2 * margin + 1,) * 2, np.uint8)
-    if mask is not None:
-        valid = cv2.erode((mask > 127).astype(np.uint8) * 255, box)
-    else:
-        valid = None
-    glint_free: OrderedDict[str, np.ndarray | None] = OrderedDict()
+@dataclass
+class _Part:
+    """What one run of reference frames found: new tracks by the reference's position."""
 
-    def free(name: str) -> np.ndarray | None:
-        """255 where a patch centred there touches no glint of frame ``name``."""
-        if masks_dir is None:
-            return None
-        if name not in glint_free:
-            m = cv2.imread(str(masks_dir / name), cv2.IMREAD_GRAYSCALE)
-            glint_free[name] = None if m is None else cv2.erode((m > 127).astype(np.uint8) * 255,
-                                                                box)
-            if len(glint_free) > frames.capacity:
-                glint_free.popitem(last=False)
-        glint_free.move_to_end(name)
-        return glint_free[name]
-    order = {i: n for n, i in enumerate(ids)}
-    shared: dict[int, Counter[int]] = defaultdict(Counter)  # model points two frames share
-    for point in rec.points3D.values():
-        seen = {e.image_id for e in point.track.elements if e.image_id in order}
-        for i in seen:
-            shared[i].update(seen - {i})
-    window = cfg.densify_neighbors * stride
-    n_corners = n_aligned = 0
-    per_ref: dict[int, list[list[tuple[int, np.ndarray]]]] = {}  # new tracks by reference frame
-    # the frames of one residue class modulo the stride in turn: a frame's targets are the
-    # following frames of its class, so the frames cache holds one class's window (in plain
-    # video order two classes' windows alternate and overflow it: every frame was read ~8x);
-    # the tracks are then put back in video order, so the result is that of video order
-    for n in sorted(range(len(ids)), key=lambda k: (k % stride, k)):
-        ref_id = ids[n]
-        targets = ids[n + stride:: stride][: cfg.densify_neighbors]
-        if n % stride == 0:  # keyframes only: far frames are not cached, reading them is slow
-            loops = [j for j, c in shared[ref_id].most_common()
-                     if order[j] > n + window and c >= cfg.densify_loop_min_shared]
-            targets += loops[: cfg.densify_loop_neighbors]
-        if not targets:
-            continue
-        img = frames.get(names[ref_id])[0]
+    tracks: dict[int, list[list[tuple[int, np.ndarray]]]]
+    corners: int = 0
+    aligned: int = 0
+    reads: int = 0
+
+
+class _Aligner:
+    """Detects each reference frame's corners and aligns them into its target frames. Each
+    :meth:`run` (one per thread) has its own frames cache; a reference frame's tracks depend
+    on the model alone, so how the frames are shared out does not change them."""
+
+    def __init__(self, image_dir: Path, mask: np.ndarray | None, masks_dir: Path | None,
+                 cfg: SfmConfig, model: tuple[dict[int, str], dict[int, np.ndarray],
+                                              dict[int, np.ndarray]],
+                 stride: int) -> None:
+        self.image_dir, self.masks_dir, self.cfg = image_dir, masks_dir, cfg
+        self.names, self.poses, self.ks = model
+        self.n_wanted = max(1, round(cfg.densify_corners / stride))
+        self.capacity = cfg.densify_neighbors * stride + 3
+        self.gx, self.gy = _grid(cfg.densify_patch_px)
+        self.margin = cfg.densify_patch_px // 2 + 2
+        self.box = np.ones((2 * self.margin + 1,) * 2, np.uint8)
+        self.valid = (None if mask is None
+                      else cv2.erode((mask > 127).astype(np.uint8) * 255, self.box))
+
+    def run(self, jobs: list[_Reference]) -> _Part:
+        part = _Part({})
+        frames = _Frames(self.image_dir, capacity=self.capacity)
+        glint_free: OrderedDict[str, np.ndarray | None] = OrderedDict()
+
+        def free(name: str) -> np.ndarray | None:
+            """255 where a patch centred there touches no glint of frame ``name``."""
+            if self.masks_dir is None:
+                return None
+            if name not in glint_free:
+                m = cv2.imread(str(self.masks_dir / name), cv2.IMREAD_GRAYSCALE)
+                glint_free[name] = (None if m is None else
+                                    cv2.erode((m > 127).astype(np.uint8) * 255, self.box))
+                if len(glint_free) > frames.capacity:
+                    glint_free.popitem(last=False)
+            glint_free.move_to_end(name)
+            return glint_free[name]
+
+        for job in jobs:
+            self._align_reference(job, frames, free, part)
+        part.reads = frames.reads
+        return part
+
+    def _align_reference(self, job: _Reference, frames: _Frames,
+                         free: Callable[[str], np.ndarray | None], part: _Part) -> None:
+        cfg, names, poses, ks = self.cfg, self.names, self.poses, self.ks
+        gx, gy, margin = self.gx, self.gy, self.margin
+        ref_id = job.image_id
+        img = np.ascontiguousarray(frames.get(names[ref_id])[..., 0])
         h, w = img.shape
+        valid = self.valid
         if valid is None:
             valid = np.zeros((h, w), np.uint8)
             valid[margin:h - margin, margin:w - margin] = 255
         ref_free = free(names[ref_id])
-        corners = cv2.goodFeaturesToTrack(img, n_wanted, cfg.densify_quality,
+        corners = cv2.goodFeaturesToTrack(img, self.n_wanted, cfg.densify_quality,
                                           cfg.densify_min_distance_px, blockSize=5,
                                           mask=valid if ref_free is None
                                           else np.minimum(valid, ref_free))
         if corners is None:
-            continue
+            return
         cv_xy = corners.reshape(-1, 2).astype(np.float64)
         xy = opencv_to_colmap_xy(cv_xy)
         # depth of each corner: median depth of the nearest model points seen in this frame
-        image = rec.image(ref_id)
-        pts = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
-        if len(pts) < 3:
-            continue
-        pxy = np.array([p[0] for p in pts])
-        _, pdepth = _project(ks[ref_id], poses[ref_id], np.array([p[1] for p in pts]))
-        d2 = ((xy[:, None, :] - pxy[None]) ** 2).sum(-1)
-        near = np.argsort(d2, axis=1)[:, : min(cfg.densify_depth_neighbors, len(pts))]
+        _, pdepth = _project(ks[ref_id], poses[ref_id], job.points_xyz)
+        d2 = ((xy[:, None, :] - job.points_xy[None]) ** 2).sum(-1)
+        near = np.argsort(d2, axis=1)[:, : min(cfg.densify_depth_neighbors, len(pdepth))]
         depth = np.median(pdepth[near], axis=1)
         xyz = _unproject(np.linalg.inv(ks[ref_id]), poses[ref_id], xy, depth)
-        n_corners += len(xy)
+        part.corners += len(xy)
         found: list[list[tuple[int, np.ndarray]]] = [[(ref_id, xy[c])] for c in range(len(xy))]
-        for tgt_id in targets:
+        for tgt_id in job.targets:
             pred, z = _project(ks[tgt_id], poses[tgt_id], xyz)
             inv, ok = _inverse_affines(ks[ref_id], poses[ref_id], poses[tgt_id], xyz, xy)
             ok &= (z > 0) & (pred[:, 0] > margin) & (pred[:, 1] > margin)
@@ -332,8 +342,66 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
                 accept &= tgt_free[px[:, 1], px[:, 0]] > 0
             for c, p in zip(sel[accept], opencv_to_colmap_xy(pos[accept]), strict=True):
                 found[c].append((tgt_id, p))
-            n_aligned += int(accept.sum())
-        per_ref[n] = [t for t in found if len(t) >= cfg.densify_min_views]
+            part.aligned += int(accept.sum())
+        part.tracks[job.n] = [t for t in found if len(t) >= cfg.densify_min_views]
+
+
+def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
+            stride: int = 1, masks_dir: Path | None = None) -> DensifyStats:
+    """Add full-size corner tracks to ``rec`` (see the module docstring); in place.
+
+    ``masks_dir`` (optional) holds per-frame masks (0 = specular glint): no corner is taken,
+    and no alignment accepted, where a patch would touch a glint of its frame.
+
+    With keyframes every ``stride`` frames (dense video), each frame gets 1/stride of the
+    corners and is aligned to every ``stride``-th following frame, so the cost and the
+    baselines of the tracks stay those of the keyframes. Each keyframe's corners are also
+    aligned into the ``densify_loop_neighbors`` later frames beyond that window that share the
+    most model points with it (loop closures, against drift)."""
+    import pycolmap
+
+    ids, names, poses, ks = _model_arrays(rec)
+    stride = max(1, stride)
+    order = {i: n for n, i in enumerate(ids)}
+    shared: dict[int, Counter[int]] = defaultdict(Counter)  # model points two frames share
+    for point in rec.points3D.values():
+        seen = {e.image_id for e in point.track.elements if e.image_id in order}
+        for i in seen:
+            shared[i].update(seen - {i})
+    window = cfg.densify_neighbors * stride
+    jobs: list[_Reference] = []
+    # the frames of one residue class modulo the stride in turn: a frame's targets are the
+    # following frames of its class, so the frames cache holds one class's window (in plain
+    # video order two classes' windows alternate and overflow it: every frame was read ~8x);
+    # the tracks are then put back in video order, so the result is that of video order
+    for n in sorted(range(len(ids)), key=lambda k: (k % stride, k)):
+        ref_id = ids[n]
+        targets = ids[n + stride:: stride][: cfg.densify_neighbors]
+        if n % stride == 0:  # keyframes only: far frames are not cached, reading them is slow
+            loops = [j for j, c in shared[ref_id].most_common()
+                     if order[j] > n + window and c >= cfg.densify_loop_min_shared]
+            targets += loops[: cfg.densify_loop_neighbors]
+        if not targets:
+            continue
+        image = rec.image(ref_id)
+        pts = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
+        if len(pts) < 3:
+            continue
+        jobs.append(_Reference(n, ref_id, targets, np.array([p[0] for p in pts]),
+                               np.array([p[1] for p in pts])))
+    aligner = _Aligner(image_dir, mask, masks_dir, cfg, (names, poses, ks), stride)
+    # each reference frame's tracks depend on the model alone, so the frames are shared out
+    # in contiguous runs (one frames cache per run) and the result is that of one thread
+    runs = max(1, min(cfg.num_threads, len(jobs)))
+    bounds = np.linspace(0, len(jobs), runs + 1).round().astype(int)
+    per_ref: dict[int, list[list[tuple[int, np.ndarray]]]] = {}  # new tracks by reference frame
+    n_corners = n_aligned = reads = 0
+    for part in ordered_map(aligner.run, [jobs[a:b] for a, b in itertools.pairwise(bounds)],
+                            runs):
+        per_ref.update(part.tracks)
+        n_corners += part.corners
+        n_aligned += part.aligned
+        reads += part.reads
     tracks = [t for n in sorted(per_ref) for t in per_ref[n]]  # per new point: (image id, xy)
 
     # triangulate (grouped by track length), keep tracks that reproject well, add them
@@ -360,8 +428,8 @@ def densify(rec: Any, image_dir: Path, mask: np.ndarray | None, cfg: SfmConfig,
             rec.add_point3D(point, track)
             n_points += 1
             n_obs += length
-    stats = DensifyStats(n_corners, n_aligned, n_points, n_obs, len(ids), frames.reads)
+    stats = DensifyStats(n_corners, n_aligned, n_points, n_obs, len(ids), reads)
     log.info("densification: %d corners at full size, %d alignments, %d points with %d "
              "observations added; %d reads of %d frames", n_corners, n_aligned, n_points, n_obs,
-             frames.reads, len(ids))
+             reads, len(ids))
     return stats
