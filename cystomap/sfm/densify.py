@@ -91,11 +91,11 @@ def _grid(patch_px: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples of ``img`` at (x, y) (OpenCV pixel centres; arrays of equal shape) and
-    whether each sample lies inside the image."""
-    h, w = img.shape
+    """Bilinear samples of ``img`` (one or more channels) at (x, y) (OpenCV pixel centres;
+    arrays of equal shape), shaped (*x.shape, channels), and whether each lies inside it."""
+    h, w = img.shape[:2]
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    val = sample_bilinear(img, x.ravel(), y.ravel())[:, 0].reshape(x.shape)
+    val = sample_bilinear(img, x.ravel(), y.ravel()).reshape(*x.shape, -1)
     return val, inside
 
 
@@ -160,6 +160,7 @@ def _templates(img: np.ndarray, ref_cv: np.ndarray, inv: np.ndarray, gx: np.ndar
     cx = ref_cv[:, 0:1] + inv[:, 0, 0:1] * gx + inv[:, 0, 1:2] * gy
     cy = ref_cv[:, 1:2] + inv[:, 1, 0:1] * gx + inv[:, 1, 1:2] * gy
     patch, inside = _sample(img, cx, cy)
+    patch = patch[..., 0]
     tpl, std = _normalise(patch)
     return tpl, std, inside.all(axis=1)
 
@@ -172,13 +173,9 @@ def _align(stack: np.ndarray, tpl: np.ndarray,
     stayed inside the frame."""
     pos = start_cv.astype(np.float32).copy()
     live = np.ones(len(pos), dtype=bool)
-    h, w = stack.shape[:2]
     for _ in range(iterations):
-        px = pos[:, 0:1] + gx
-        py = pos[:, 1:2] + gy
-        inside = (px >= 0) & (py >= 0) & (px <= w - 1) & (py <= h - 1)
-        samples = sample_bilinear(stack, px.ravel(), py.ravel())
-        val, dx, dy = (samples[:, c].reshape(px.shape) for c in range(3))
+        samples, inside = _sample(stack, pos[:, 0:1] + gx, pos[:, 1:2] + gy)
+        val, dx, dy = samples[..., 0], samples[..., 1], samples[..., 2]
         live &= inside.all(axis=1)
         mean = val.mean(axis=1, keepdims=True)
         std = np.sqrt(((val - mean) ** 2).mean(axis=1, keepdims=True)) + 1e-6
@@ -197,9 +194,8 @@ def _align(stack: np.ndarray, tpl: np.ndarray,
         pos += step
         if np.abs(step).max(initial=0.0) < 1e-3:
             break
-    px, py = pos[:, 0:1] + gx, pos[:, 1:2] + gy
-    inside = (px >= 0) & (py >= 0) & (px <= w - 1) & (py <= h - 1)
-    val = sample_bilinear(stack, px.ravel(), py.ravel())[:, 0].reshape(px.shape)
+    samples, inside = _sample(stack, pos[:, 0:1] + gx, pos[:, 1:2] + gy)
+    val = samples[..., 0]
     zncc = (_normalise(val)[0] * tpl).mean(axis=1)
     return pos.astype(np.float64), zncc, live & inside.all(axis=1)
 
