@@ -25,6 +25,7 @@ import numpy as np
 
 from cystomap.camera import Camera
 from cystomap.errors import StageError
+from cystomap.images import PNG_WRITE
 from cystomap.outputs import write_json
 from cystomap.video import ordered_map
 
@@ -33,7 +34,6 @@ log = logging.getLogger(__name__)
 #: The sfm output's subdirectory of undistorted frames (present only after self-calibration).
 UNDISTORTED = "undistorted"
 DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
-_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 
 def frames_dir(sfm_dir: str | Path, preprocessed_dir: str | Path) -> Path:
@@ -174,7 +174,7 @@ class Undistortion:
                     raise StageError(f"{src}: cannot read image")
                 img = geo.remap(img)
                 img[outside] = 0
-                if not cv2.imwrite(str(self.out / sub / name), img, _PNG_FAST):
+                if not cv2.imwrite(str(self.out / sub / name), img, PNG_WRITE):
                     raise StageError(f"{self.out / sub / name}: cannot write PNG")
 
         for _ in ordered_map(work, self.names, self.threads):
