@@ -276,7 +276,10 @@ def snakemake(workdir: Path, *args: str, env: dict | None = None) -> subprocess.
 def make_study(root: Path) -> Path:
     root.mkdir()
     write_study(root)
-    (root / "test_config.yaml").write_text(yaml.safe_dump(study_config(), sort_keys=False))
+    # each job with its stage's threads locally too, as on Slurm: share_cores would give the
+    # two sessions' jobs one thread each on 2 cores, and their outputs record their threads
+    config = study_config(share_cores=False)
+    (root / "test_config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     return root
 
 

@@ -39,7 +39,9 @@ def test_rule_threads_flow_into_the_stage() -> None:
     keyed = {n: r for n, r in rules.items() if "config[" in r[0]}
     assert {"phantom_session", "frames", "preprocess", "sfm", "atlas", "compare"} <= set(keyed)
     for name, (threads, script) in keyed.items():
-        section, key = re.match(r'config\["(\w+)"\]\["(\w+)"\]', threads).groups()
+        # per-session stages: session_threads(config[...]) (the cores shared among sessions)
+        section, key = re.fullmatch(r'(?:session_threads\()?config\["(\w+)"\]\["(\w+)"\]\)?(?: or \d)?(?:  #.*)?',
+                                    threads.strip()).groups()
         text = script.read_text()
         tail = ")" if key == "threads" else f', "{key}")'
         helper = 'job_config(' in text and f'sm.params.{section}, "{section}", sm.threads{tail}' in text
@@ -47,7 +49,7 @@ def test_rule_threads_flow_into_the_stage() -> None:
         assert given, f"rule {name}: {script.name} does not give the stage its job's threads ({section}.{key})"
     for name, (threads, _) in rules.items():
         if name not in keyed:
-            assert threads.strip() in ("1", "2"), name
+            assert threads.strip() in ("1", "2", "session_threads(2)"), name
 
 
 def test_with_threads_sets_the_key() -> None:
@@ -88,3 +90,38 @@ def test_constraints_pin_every_direct_dependency_at_the_installed_version() -> N
         assert version(name) == pinned, name
     recorded = software_versions()
     assert recorded["cystomap"] and all(recorded[k] == pins[k] for k in recorded if k in pins)
+
+
+@pytest.mark.parametrize(("sessions", "cores", "share", "expected"), [
+    (2, 2, True, 1),  # the default study on 2 cores: the two sessions side by side
+    (2, 2, False, 2),
+    (1, 2, True, 2),  # one session keeps its stages' threads
+    (2, 4, True, 2),
+])
+def test_per_session_jobs_share_the_cores_among_sessions(tmp_path, sessions, cores, share,
+                                                         expected) -> None:
+    import subprocess
+    import sys
+
+    import pandas as pd
+    import yaml
+
+    rows = [{"subject": "p01", "session": s, "video": f"{s}.mp4", "date": f"2026-0{i + 1}-01",
+             "camera": "phantom_76"} for i, s in enumerate("ab"[:sessions])]
+    for row in rows:
+        (tmp_path / row["video"]).write_bytes(b"")
+    pd.DataFrame(rows).to_csv(tmp_path / "sessions.tsv", sep="\t", index=False)
+    config = yaml.safe_load((REPO / "config.yaml").read_text())
+    config.update(sessions="sessions.tsv", phantom={"enabled": False}, share_cores=share)
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+    proc = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+         str(tmp_path), "--configfile", str(tmp_path / "config.yaml"), "--cores", str(cores),
+         "-n", "--nocolor", "--workflow-profile", "none", "results/p01/a/atlas"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = re.split(r"\n(?=rule |localrule )", proc.stdout + proc.stderr)
+    for rule in ("frames", "preprocess", "sfm", "mesh", "atlas"):
+        block = next(j for j in jobs if re.match(rf"(local)?rule {rule}:", j))
+        threads = re.search(r"\n\s+threads: (\d+)", block)  # not shown when 1
+        assert (int(threads.group(1)) if threads else 1) == expected, (rule, block)

@@ -22,7 +22,7 @@ rule atlas:
         "logs/{subject}/{session}/atlas.log",
     benchmark:
         "benchmarks/{subject}/{session}/atlas.tsv"
-    threads: config["atlas"]["threads"]
+    threads: session_threads(config["atlas"]["threads"])
     resources:
         mem_mb=6000,
         runtime=20,

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+from snakemake.logging import logger
 from snakemake.utils import validate
 
 # The library is installed into .venv by `make setup`; this also finds it in a plain checkout.
@@ -32,6 +33,37 @@ if SESSIONS.index.duplicated().any():
 PHANTOM = config["phantom"]
 PHANTOM_SUBJECTS = [PHANTOM["subject"]] if PHANTOM["enabled"] else []
 CONDA_ENV = "../envs/cystomap.yaml"
+
+def _local_cores():
+    """--cores of a local run, None on a cluster executor or without --cores (a lint)."""
+    if workflow.remote_exec or not workflow.local_exec:
+        return None
+    try:
+        return int(workflow.cores)
+    except Exception:
+        return None
+
+
+def session_threads(threads):
+    """Threads of a per-session job: its stage's ``threads``, or, on a local run whose
+    sessions cannot all have them at once, --cores shared among the sessions (config
+    ``share_cores``: the stages use a second core only in part, so sessions side by side at one
+    thread each finish sooner than one after the other at two)."""
+    threads = max(1, int(threads))
+    cores = _local_cores()
+    if not config["share_cores"] or cores is None:
+        return threads
+    return max(1, min(threads, cores // max(1, len(SESSIONS))))
+
+
+if config["share_cores"] and len(SESSIONS) > 1 and (_local_cores() or 0) > 1:
+    if session_threads(_local_cores()) < _local_cores():
+        logger.info(
+            f"cystomap: {len(SESSIONS)} sessions on {_local_cores()} cores: each per-session job "
+            f"gets at most {session_threads(_local_cores())} thread(s), so that sessions run side "
+            "by side (share_cores: false turns this off)"
+        )
+
 
 # Outputs the phantom scorer reads, per session; each stage's issue adds its own here.
 SCORED_OUTPUTS = {

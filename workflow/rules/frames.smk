@@ -13,7 +13,7 @@ rule frames:
         "logs/{subject}/{session}/frames.log",
     benchmark:
         "benchmarks/{subject}/{session}/frames.tsv"
-    threads: config["frames"]["threads"]
+    threads: session_threads(config["frames"]["threads"])
     resources:
         mem_mb=2000,
         runtime=20,

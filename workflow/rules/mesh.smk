@@ -13,7 +13,7 @@ rule mesh:
         "logs/{subject}/{session}/mesh.log",
     benchmark:
         "benchmarks/{subject}/{session}/mesh.tsv"
-    threads: 2
+    threads: session_threads(2)
     resources:
         mem_mb=3000,
         runtime=10,

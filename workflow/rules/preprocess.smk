@@ -13,7 +13,7 @@ rule preprocess:
         "logs/{subject}/{session}/preprocess.log",
     benchmark:
         "benchmarks/{subject}/{session}/preprocess.tsv"
-    threads: config["preprocess"]["threads"]
+    threads: session_threads(config["preprocess"]["threads"])
     resources:
         mem_mb=2000,
         runtime=20,

@@ -14,7 +14,7 @@ rule sfm:
         "logs/{subject}/{session}/sfm.log",
     benchmark:
         "benchmarks/{subject}/{session}/sfm.tsv"
-    threads: config["sfm"]["num_threads"]
+    threads: session_threads(config["sfm"]["num_threads"])
     resources:
         mem_mb=6000,
         runtime=30,
