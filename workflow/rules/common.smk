@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+from snakemake.exceptions import WorkflowError
 from snakemake.logging import logger
 from snakemake.utils import validate
 
@@ -40,29 +41,30 @@ def _local_cores():
         return None
     try:
         return int(workflow.cores)
-    except Exception:
+    except WorkflowError:
         return None
 
 
+# Threads a per-session job gets at most on a local run (config share_cores): --cores shared
+# among the sessions, which then run side by side (the stages use a second core only in part,
+# so sessions at one thread each finish sooner than one after the other at two). None: each
+# job gets its stage's threads.
+LOCAL_CORES = _local_cores()
+SESSION_THREADS = (
+    max(1, LOCAL_CORES // len(SESSIONS)) if config["share_cores"] and LOCAL_CORES else None
+)
+if SESSION_THREADS is not None and SESSION_THREADS < LOCAL_CORES:
+    logger.info(
+        f"cystomap: {len(SESSIONS)} sessions on {LOCAL_CORES} cores: each per-session job gets at "
+        f"most {SESSION_THREADS} thread(s), so that sessions run side by side (share_cores: false "
+        "turns this off)"
+    )
+
+
 def session_threads(threads):
-    """Threads of a per-session job: its stage's ``threads``, or, on a local run whose
-    sessions cannot all have them at once, --cores shared among the sessions (config
-    ``share_cores``: the stages use a second core only in part, so sessions side by side at one
-    thread each finish sooner than one after the other at two)."""
+    """Threads of a per-session job: its stage's ``threads``, at most SESSION_THREADS."""
     threads = max(1, int(threads))
-    cores = _local_cores()
-    if not config["share_cores"] or cores is None:
-        return threads
-    return max(1, min(threads, cores // max(1, len(SESSIONS))))
-
-
-if config["share_cores"] and len(SESSIONS) > 1 and (_local_cores() or 0) > 1:
-    if session_threads(_local_cores()) < _local_cores():
-        logger.info(
-            f"cystomap: {len(SESSIONS)} sessions on {_local_cores()} cores: each per-session job "
-            f"gets at most {session_threads(_local_cores())} thread(s), so that sessions run side "
-            "by side (share_cores: false turns this off)"
-        )
+    return threads if SESSION_THREADS is None else min(threads, SESSION_THREADS)
 
 
 # Outputs the phantom scorer reads, per session; each stage's issue adds its own here.
