@@ -10,6 +10,8 @@ INTRINSICS_MODES = ("auto", "fixed", "refine")
 HALVES_CHECK_MODES = ("warn", "fail", "off")
 #: COLMAP camera models of self-calibration; all but SIMPLE_PINHOLE estimate lens distortion.
 SELF_CALIBRATION_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE")
+#: how the keyframes are mapped: COLMAP's incremental mapper, or its global one (GLOMAP)
+MAPPERS = ("incremental", "global")
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,16 @@ class SfmConfig:
     ransac_max_error_px: float = setting(4.0, "> 0")
 
     # --- mapping ---
+    # how the keyframes are mapped before the other frames are registered to them:
+    # incremental = COLMAP's incremental mapper (frame by frame, local and global bundle
+    # adjustments); global = COLMAP's global mapper (GLOMAP: rotation averaging of every
+    # verified pair at once, then global positioning and bundle adjustment), which spreads a
+    # loop's disagreement over the whole chain instead of leaving it where the loop closes.
+    # Opt-in: on held-out phantom seeds 10-12 it folded two of three mosaic (repeated texture)
+    # sessions (the self-check failed the stage) and put glints:11 5.3 mm off (flagged), where
+    # the incremental mapper kept every mosaic session within 0.06 mm; on the 3-minute 1080p
+    # recording it gave 0.106 mm against 0.197 (README, "Tracks merged up to 15 px")
+    mapper: str = setting("incremental", choices=MAPPERS)
     # camera intrinsics in bundle adjustment: fixed, refine, or auto = fixed when
     # camera.json is calibrated, self-calibrated (focal length and distortion, see
     # self_calibration_model) when it is only a FOV guess
@@ -137,6 +149,16 @@ class SfmConfig:
     ba_global_after_registering: bool = False
     # observations with a reprojection error above this are dropped (px); mapping and final
     max_reproj_error_px: float = setting(4.0, "> 0")
+    # largest reprojection error (px) at which the mapper merges two tracks (of one scene
+    # point, linked by verified matches) or extends a track to another frame; the bundle
+    # adjustment that follows decides, and max_reproj_error_px filters after it. COLMAP's
+    # incremental mapper gates at 4 px, so where the model drifted by more than that (a long
+    # sweep before the scope returns) the returning frames start new tracks beside the old
+    # ones and the loop is never pulled closed; its global mapper merges up to 15 px. At 15 the
+    # 3-minute 1080p recording's trajectory RMSE went 0.197 -> 0.113 mm and a development
+    # session with a badly placed stretch (clean:8) 0.86 -> 0.12 mm, for 8-27 % more sfm
+    # time (README, "Tracks merged up to 15 px"); 4 = COLMAP's incremental default
+    track_merge_error_px: float = setting(15.0, "> 0")
     # after mapping: drop observations above this error (px) and re-adjust; 0 = skip
     final_filter_error_px: float = setting(2.0, ">= 0")
     # iterations of the final global bundle adjustment

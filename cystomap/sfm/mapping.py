@@ -53,17 +53,22 @@ def _refine_distortion(cfg: SfmConfig, refine: bool) -> bool:
     return refine and cfg.self_calibration_model != "SIMPLE_PINHOLE"
 
 
-def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
-    import pycolmap
-
-    o = pycolmap.IncrementalPipelineOptions()
+def _shared(o: Any, cfg: SfmConfig, image_path: Path) -> Any:
+    """The settings COLMAP's incremental and global pipeline options have in common."""
     o.num_threads = cfg.mapping_threads
     o.random_seed = cfg.seed
     o.multiple_models = True
     o.min_model_size = cfg.min_model_frames
     o.min_num_matches = cfg.min_num_inliers
-    o.extract_colors = False
     o.image_path = str(image_path)
+    return o
+
+
+def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
+    import pycolmap
+
+    o = _shared(pycolmap.IncrementalPipelineOptions(), cfg, image_path)
+    o.extract_colors = False
     o.ba_refine_focal_length = refine
     o.ba_refine_principal_point = False
     o.ba_refine_extra_params = _refine_distortion(cfg, refine)
@@ -85,9 +90,45 @@ def pipeline_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
     m.filter_max_reproj_error = cfg.max_reproj_error_px
     t = o.triangulation
     t.random_seed = cfg.seed
-    t.merge_max_reproj_error = cfg.max_reproj_error_px
-    t.complete_max_reproj_error = cfg.max_reproj_error_px
+    t.merge_max_reproj_error = cfg.track_merge_error_px
+    t.complete_max_reproj_error = cfg.track_merge_error_px
     return o
+
+
+def global_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
+    """COLMAP's global mapper (GLOMAP) with the stage's threads, seed, thresholds and
+    intrinsics (refined as :func:`pipeline_options` would), on the CPU."""
+    import pycolmap
+
+    o = _shared(pycolmap.GlobalPipelineOptions(), cfg, image_path)
+    m = o.mapper
+    m.num_threads = cfg.mapping_threads
+    m.random_seed = cfg.seed
+    m.rotation_averaging.random_seed = cfg.seed
+    m.global_positioning.random_seed = cfg.seed
+    m.global_positioning.use_gpu = False
+    m.retriangulation.random_seed = cfg.seed
+    ba = m.bundle_adjustment
+    ba.refine_focal_length = refine
+    ba.refine_principal_point = False
+    ba.refine_extra_params = _refine_distortion(cfg, refine)
+    ba.ceres.use_gpu = False
+    ba.ceres.solver_options.num_threads = cfg.mapping_threads
+    return o
+
+
+def _map_keyframes(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, refine: bool,
+                   image_names: list[str]) -> dict[int, Any]:
+    """Map ``image_names`` (all frames when empty) with ``cfg.mapper``: the models by id."""
+    import pycolmap
+
+    if cfg.mapper == "global":
+        o = global_options(cfg, refine, color_dir)
+        o.image_names = image_names
+        return dict(pycolmap.global_mapping(database, color_dir, out, options=o))
+    o = pipeline_options(cfg, refine, color_dir)
+    o.image_names = image_names
+    return dict(pycolmap.incremental_mapping(database, color_dir, out, options=o))
 
 
 def as_pinhole(rec: Any) -> None:
@@ -265,11 +306,10 @@ def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, 
 
     pycolmap.set_random_seed(cfg.seed)
     opts = pipeline_options(cfg, refine, color_dir)
-    if len(mapped) < len(names):
-        opts.image_names = [names[i] for i in mapped]
     out.mkdir(parents=True, exist_ok=True)
-    with _clock(cpu, "incremental"):
-        recs = pycolmap.incremental_mapping(database, color_dir, out, options=opts)
+    with _clock(cpu, cfg.mapper):
+        recs = _map_keyframes(database, color_dir, out, cfg, refine,
+                              [names[i] for i in mapped] if len(mapped) < len(names) else [])
     recs = {k: r for k, r in recs.items() if r.num_reg_images() >= 2}
     if not recs:
         return None
