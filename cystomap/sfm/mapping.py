@@ -118,17 +118,16 @@ def global_options(cfg: SfmConfig, refine: bool, image_path: Path) -> Any:
 
 
 def _map_keyframes(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, refine: bool,
-                   image_names: list[str]) -> dict[int, Any]:
-    """Map ``image_names`` (all frames when empty) with ``cfg.mapper``: the models by id."""
+                   opts: Any) -> dict[int, Any]:
+    """Map ``opts.image_names`` (all frames when empty) with ``cfg.mapper``: the models by id;
+    ``opts`` are the incremental pipeline's (:func:`pipeline_options`)."""
     import pycolmap
 
     if cfg.mapper == "global":
         o = global_options(cfg, refine, color_dir)
-        o.image_names = image_names
+        o.image_names = opts.image_names
         return dict(pycolmap.global_mapping(database, color_dir, out, options=o))
-    o = pipeline_options(cfg, refine, color_dir)
-    o.image_names = image_names
-    return dict(pycolmap.incremental_mapping(database, color_dir, out, options=o))
+    return dict(pycolmap.incremental_mapping(database, color_dir, out, options=opts))
 
 
 def as_pinhole(rec: Any) -> None:
@@ -306,10 +305,11 @@ def _map_and_extend(database: Path, color_dir: Path, out: Path, cfg: SfmConfig, 
 
     pycolmap.set_random_seed(cfg.seed)
     opts = pipeline_options(cfg, refine, color_dir)
+    if len(mapped) < len(names):
+        opts.image_names = [names[i] for i in mapped]
     out.mkdir(parents=True, exist_ok=True)
     with _clock(cpu, cfg.mapper):
-        recs = _map_keyframes(database, color_dir, out, cfg, refine,
-                              [names[i] for i in mapped] if len(mapped) < len(names) else [])
+        recs = _map_keyframes(database, color_dir, out, cfg, refine, opts)
     recs = {k: r for k, r in recs.items() if r.num_reg_images() >= 2}
     if not recs:
         return None
