@@ -404,7 +404,8 @@ def test_lesion_beside_the_neck_cap_is_not_dropped_with_it(sphere) -> None:
     b[cap] = 0.55 * WALL + rng.normal(0, 2.0, (int(cap.sum()), 3))
     lesion = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < RADIUS * math.radians(12.0))
     b[lesion] = LESION + rng.normal(0, 2.0, (int(lesion.sum()), 3))
-    regions = _detect(sphere, a, b, grid.hit, grid.hit, openings=opening[None], opening_deg=30.0)
+    regions = _detect(sphere, a, b, grid.hit, grid.hit, openings=opening[None], opening_deg=30.0,
+                      neck_chroma=False)
     assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     g = regions[0]
     assert np.linalg.norm([g.x, g.y, g.z] - centre) < 3.0
@@ -466,14 +467,51 @@ def test_small_lesion_in_the_noisy_band_around_the_neck_is_found(sphere) -> None
     a, b, a_seen, opening, centre = _neck_band_pair(sphere, 20.0)
     hit = sphere[2].hit
     regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=True,
-                      opening_deg=0.0)
+                      opening_deg=0.0, neck_chroma=False)
     assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.5
     assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6
     raw = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_levelling=False,
-                  opening_deg=0.0)
+                  opening_deg=0.0, neck_chroma=False)
     assert sum(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in raw) >= 1
-    cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None])  # the defaults
+    cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_chroma=False)
+    assert all(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in cone)
+
+
+def _neck_halo_pair(sphere, lesion_deg: float) -> tuple[np.ndarray, ...]:
+    """A wall whose band 8-36° from the neck is brightened by a different blotchy gain in
+    each session (the brightness levelling's halo around the lumen, which changes from frame
+    to frame: a few per cent here, one gain for all three channels), the neck itself (within
+    8°) unseen by A, and a 6 mm lesion in B ``lesion_deg`` from the neck."""
+    grid = sphere[2]
+    opening, pts, ang = _neck_geometry(grid)
+    rng = np.random.default_rng(13)
+    band = grid.hit * np.clip((36.0 - ang) / 12.0, 0, 1)
+    a = WALL * np.exp(0.015 * band * _blotches(23, pts, 4.0)[..., 0])[..., None]
+    b = WALL * np.exp(0.015 * band * _blotches(24, pts, 4.0)[..., 0])[..., None]
+    a = a + rng.normal(0, 2.0, a.shape)
+    b = b + rng.normal(0, 2.0, b.shape)
+    centre = _neck_lesion(grid, b, pts, lesion_deg, rng)
+    a_seen = grid.hit & (ang >= 8.0)
+    return a, b, a_seen, opening, centre
+
+
+def test_lesion_in_the_brightness_halo_around_the_neck_is_found_by_its_colour(sphere) -> None:
+    """Around the neck each session's wall is brightened by its own blotchy gain (the halo);
+    with neck_chroma the band is tested on what no brightness change explains, and the cap
+    to cut is where that is noisy too (here only the unseen neck): a 6 mm lesion 20° from the
+    neck is the one region. The fixed 30° cone (the default) loses it; without either the
+    halo is reported."""
+    a, b, a_seen, opening, centre = _neck_halo_pair(sphere, 20.0)
+    hit = sphere[2].hit
+    regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_chroma=True)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.5
+    assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6
+    raw = _detect(sphere, a, b, a_seen, hit, openings=opening[None], opening_deg=0.0,
+                  neck_chroma=False)
+    assert sum(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in raw) >= 1
+    cone = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_chroma=False)
     assert all(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in cone)
 
 
@@ -501,9 +539,14 @@ def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
     a, b, a_seen, opening, centre = _neck_ramp_pair(sphere, 20.0, 0.2)
     hit = sphere[2].hit
     regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_ratio=True,
-                      opening_deg=0.0)
+                      opening_deg=0.0, neck_chroma=False)
     assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 1.5
     assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6  # measured 5.6
-    plain = _detect(sphere, a, b, a_seen, hit, openings=opening[None], opening_deg=0.0)
+    plain = _detect(sphere, a, b, a_seen, hit, openings=opening[None], opening_deg=0.0,
+                    neck_chroma=False)
     assert not any(np.linalg.norm([r.x, r.y, r.z] - centre) < 3 for r in plain)
+    # the default (neck_chroma): the ramp is a change of brightness, the lesion one of colour
+    chroma = _detect(sphere, a, b, a_seen, hit, openings=opening[None])
+    assert len(chroma) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in chroma]
+    assert np.linalg.norm([chroma[0].x, chroma[0].y, chroma[0].z] - centre) < 1.5

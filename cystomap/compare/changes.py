@@ -61,14 +61,16 @@ misaligned gives a thin, long difference; phantom lesions measured 1.0-1.7, cut 
 The bladder neck: the scope enters through it, so registered cameras at or beyond the wall
 point to it; the mesh closes it with a cap whose texture (the urethra seen through it) differs
 between sessions, and the wall around it is filmed rarely and at grazing angles, on a mesh
-several millimetres off, so its whole band is "changed" without any change. The wall within
-``opening_deg`` of such a camera's direction (the cap) is cut out of the accepted clusters,
-and regions still centred within it are dropped (lesions within about 30 mm of the neck are
-therefore not reported when the entry was registered; a lesion beside it, joined to the cap's
-difference in one cluster, is measured without the cap rather than dropped with it). The
-alternative, ``neck_levelling`` (opt-in, :mod:`cystomap.compare.neck`), scales the band's
-significance to the wall's noise level ring by ring instead: on held-out pairs it was no better
-(README, "The wall around the neck").
+several millimetres off, so its whole band is "changed" without any change. The wall within an
+angle of such a camera's direction (the cap) is cut out of the accepted clusters, and regions
+still centred within it are dropped (a lesion beside it, joined to the cap's difference in one
+cluster, is measured without the cap rather than dropped with it). With ``neck_chroma`` (the
+default) the angle is the pair's own (:func:`cystomap.compare.neck.chroma_band`: out to where
+the colour is as quiet as on the rest of the wall), and beyond it the band whose brightness
+the levelling's halo disturbs is tested on its colour alone; without it the angle is the
+fixed ``opening_deg``. The alternative ``neck_levelling`` (opt-in) scales the band's
+significance to the wall's noise level ring by ring instead: on held-out pairs it was no
+better (README, "The wall around the neck").
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
 ``local_delta_e``). Photometric residue the illumination matching leaves
@@ -107,7 +109,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -116,7 +118,7 @@ from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid
 from cystomap.compare.grid import cone_mask, within_cone
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
-from cystomap.compare.neck import level_around_neck
+from cystomap.compare.neck import chroma_band, level_around_neck
 from cystomap.compare.null import (
     CANDIDATE_MADS,
     Candidates,
@@ -583,11 +585,16 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     if cfg.neck_levelling and openings is not None and len(openings):
         diff.significance, neck_info = level_around_neck(diff.significance, diff.joint, grid,
                                                          openings, 2 * cfg.smooth_mm)
+    if cfg.neck_chroma and openings is not None and len(openings):
+        # the pair's own cap instead of opening_deg, the band beyond it tested on its colour
+        diff.significance, cap_deg, neck_info = chroma_band(diff, grid, openings,
+                                                            2 * cfg.smooth_mm)
+        cfg = replace(cfg, opening_deg=min(cap_deg, 89.0))
     sig = diff.significance
     checks = _Checks(diff, cfg, proj_full, rays, openings, verify)
     null = candidates(sig, diff.joint, grid.area, cfg.false_alarm_rate, checks.reportable)
     info: dict[str, Any] = dict(null.info)
-    info["neck_levelling"] = neck_info
+    info["neck_chroma" if cfg.neck_chroma else "neck_levelling"] = neck_info
     # the pixel level significance.png marks: the candidate level (what is tested)
     info["threshold"] = null.level
     cand = np.isin(null.labels, np.nonzero(null.flagged)[0] + 1)

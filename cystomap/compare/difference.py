@@ -311,7 +311,8 @@ def robust_covariance(x: np.ndarray, iterations: int = 5) -> np.ndarray:
     factor = chi2.cdf(cut, d + 2) / chi2.cdf(cut, d)
     for _ in range(iterations):
         inv = np.linalg.inv(cov)
-        r2 = np.einsum("ij,jk,ik->i", x - centre, inv, x - centre)
+        dx = x - centre
+        r2 = ((dx @ inv) * dx).sum(axis=1)
         keep = r2 < cut
         if keep.sum() < 10 * d:
             break
@@ -339,6 +340,11 @@ class Difference:
     # B's colours smoothed (smooth_mm) over it; set by painted_b
     b_seen: np.ndarray | None = None
     b_smooth: np.ndarray | None = None
+    # (H, W) significance of the part of the smoothed difference that no brightness change
+    # (a gain along B's colour) explains, and the whitened size of the brightness part
+    # (both only with neck_chroma)
+    significance_colour: np.ndarray | None = None
+    brightness: np.ndarray | None = None
 
 
 def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb: np.ndarray,
@@ -424,7 +430,34 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
                           f"a chi(3) variable under Gaussian noise, median {CHI3_MEDIAN})",
         raw_difference_rms=float(np.sqrt(np.mean(delta[joint] ** 2))),
     )
-    return Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
+    out = Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
+    if getattr(cfg, "neck_chroma", False):
+        u = sb[0] / np.maximum(np.linalg.norm(sb[0], axis=-1, keepdims=True), 1e-6)
+        sig_c, bright = None, None
+        for k in range(len(blurs)):
+            for d in ([smooth] if k == 0 else [sb[0] - sa[k], sb[k] - sa[0]]):
+                c, g = gain_free(d, u, inv)
+                sig_c = c if sig_c is None else np.minimum(sig_c, c)
+                bright = g if bright is None else np.minimum(bright, g)
+        sig_c[~joint] = 0
+        bright[~joint] = 0
+        out.significance_colour, out.brightness = sig_c, bright
+    return out
+
+
+def gain_free(d: np.ndarray, u: np.ndarray, inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened length of the part of the differences ``d`` (H, W, 3) that no change of
+    brightness along the colours' directions ``u`` (unit, H, W, 3) explains (the smallest
+    Mahalanobis length of d - g·u over g: a chi(2) variable under Gaussian noise), and the
+    whitened size of the brightness part |g| (a chi(1) one)."""
+    d = d.astype(np.float32)
+    di = d @ inv
+    ui = u.astype(np.float32) @ inv
+    full = np.einsum("hwi,hwi->hw", di, d)
+    proj = np.einsum("hwi,hwi->hw", ui, d)
+    uu = np.maximum(np.einsum("hwi,hwi->hw", ui, u), 1e-12)
+    return (np.sqrt(np.maximum(full - proj ** 2 / uu, 0)),
+            np.abs(proj) / np.sqrt(uu))
 
 
 def painted_b(diff: Difference, rgba_b: np.ndarray, smooth_mm: float) -> None:

@@ -73,18 +73,24 @@ def spread_subset(xyz: np.ndarray, track: np.ndarray, n: int) -> np.ndarray:
     best = None
     for _ in range(30):  # bisection on the cell size (occupied cells fall as it grows)
         mid = math.sqrt(lo * hi)
-        cells = np.floor((xyz - xyz.min(axis=0)) / mid).astype(np.int64)
-        _, first = np.unique(cells, axis=0, return_index=True)
-        if len(first) > n:
+        if len(np.unique(_cell_keys(xyz, mid))) > n:
             lo = mid
         else:
             hi, best = mid, mid
         if hi / lo < 1.01:
             break
-    cells = np.floor((xyz - xyz.min(axis=0)) / (best or hi)).astype(np.int64)
+    keys = _cell_keys(xyz, best or hi)
     order = np.lexsort((np.arange(len(xyz)), -track))  # longest tracks first, stable
-    _, first = np.unique(cells[order], axis=0, return_index=True)
+    _, first = np.unique(keys[order], return_index=True)  # first occurrence of each cell
     return np.sort(order[first])
+
+
+def _cell_keys(xyz: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 per point naming its voxel of side ``cell`` (the three cell indices packed:
+    a 1-D unique is several times faster than a unique of rows)."""
+    cells = np.floor((xyz - xyz.min(axis=0)) / cell).astype(np.int64)
+    m = cells.max(axis=0) + 1
+    return (cells[:, 0] * m[1] + cells[:, 1]) * m[2] + cells[:, 2]
 
 
 def collect_observations(
@@ -115,7 +121,12 @@ def collect_observations(
         sub = spread_subset(xyz_a, np.asarray(tracks)[keep_a], max_points)
         log.info("%s: %d of %d points kept, spread over the wall", sfm_dir, len(sub), len(ids_a))
         ids_a, xyz_a = ids_a[sub], xyz_a[sub]
-    row_of = {int(i): r for r, i in enumerate(ids_a)}
+    # the kept points' observations, per image: (keypoint index, row), from their tracks
+    # (a few of each image's keypoints, not all of them)
+    by_image: dict[int, list[tuple[int, int]]] = {}
+    for r, pid in enumerate(ids_a):
+        for el in rec.points3D[int(pid)].track.elements:
+            by_image.setdefault(el.image_id, []).append((el.point2D_idx, r))
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     size_cache: dict[int, tuple[int, int] | None] = {}
     # every observation: (row, image index, x, y, depth, size)
@@ -131,17 +142,13 @@ def collect_observations(
         k = opencv_calibration(cam, *wh)
         sx, sy = wh[0] / cam.width, wh[1] / cam.height
         rot, t = world_to_camera(im)
-        rows, xy = [], []
-        for p2 in im.points2D:
-            if p2.has_point3D():
-                r = row_of.get(int(p2.point3D_id))
-                if r is not None:
-                    rows.append(r)
-                    xy.append(p2.xy)
-        if not rows:
+        seen = by_image.get(im.image_id)
+        if not seen:
             continue
-        rows_a = np.asarray(rows, dtype=np.int64)
-        xy_a = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        seen.sort()  # in the order of the image's keypoints
+        rows_a = np.asarray([r for _, r in seen], dtype=np.int64)
+        xy_a = np.asarray([im.points2D[k].xy for k, _ in seen],
+                          dtype=np.float64).reshape(-1, 2)
         depth = (xyz_a[rows_a] @ rot.T + t)[:, 2]
         ok = depth > 1e-9
         idx = len(names)
@@ -301,8 +308,13 @@ def point_features(
 
         with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
             for o, d, v in pool.map(work, obs):
-                np.add.at(acc, o.row[v], d[v])
-                np.add.at(count, o.row[v], 1)
+                rows = o.row[v]
+                if len(np.unique(rows)) == len(rows):  # one view of a point per frame
+                    acc[rows] += d[v]  # the same sums as add.at, several times faster
+                    count[rows] += 1
+                else:
+                    np.add.at(acc, rows, d[v])
+                    np.add.at(count, rows, 1)
     finally:
         cv2.setNumThreads(old_threads)
     ok = count > 0

@@ -98,7 +98,13 @@ def near_on_wall(mask: np.ndarray, points: np.ndarray, radius_mm: float,
     query = (ok & ~mask) if candidates is None else (candidates & ok & ~mask)
     if not edge.any() or not query.any() or radius_mm <= 0:
         return out
-    tree = cKDTree(points[edge])
+    edge_pts = points[edge]
+    # only pixels inside the edge's bounding box grown by the radius can be within it
+    lo, hi = edge_pts.min(axis=0) - radius_mm, edge_pts.max(axis=0) + radius_mm
+    query &= ((points >= lo) & (points <= hi)).all(axis=-1)
+    if not query.any():
+        return out
+    tree = cKDTree(edge_pts)
     d, _ = tree.query(points[query], distance_upper_bound=radius_mm)
     hit = np.zeros_like(mask)
     hit[query] = np.isfinite(d)

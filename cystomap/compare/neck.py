@@ -146,3 +146,78 @@ def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid
             "luminance_log_ratio_by_ring": [round(float(x), 4) for x in lum]}
     return factor, info
 
+
+
+def chroma_band(diff: Any, grid: Grid, openings: np.ndarray, ring_mm: float,
+                ) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """The significance with the wall around the neck tested on its colour alone, the angle
+    (degrees) of the neck's cap to cut out, and what was done (for ``compare.json``).
+
+    Rings around the neck (as in :func:`level_around_neck`), each with two levels relative
+    to the wall 90° or more from the neck: the median colour significance
+    (``diff.significance_colour``: what no brightness change explains) and the median
+    brightness part (``diff.brightness``). The cap (the opening and the mesh that bridges
+    it) reaches from the neck to the first ring at most ``BAND_LEVEL`` in colour beyond the
+    ring noisiest in colour (when that one is above ``BAND_LEVEL``; rings inside the opening
+    may be quiet: unseen by A, or a uniform view into the urethra). The band is the rings
+    after the cap whose brightness level is above ``BAND_LEVEL``, up to the first that is
+    not; there the significance is the smaller of itself and the colour significance in the
+    wall's units (times the ratio of the two significances' wall medians)."""
+    sig, joint = diff.significance, diff.joint
+    sig_c, bright = diff.significance_colour, diff.brightness
+    openings = np.asarray(openings, np.float64).reshape(-1, 3)
+    if sig_c is None or bright is None or not len(openings):
+        return sig, 0.0, {"band": False, "reason": "no camera at the neck"}
+    area = grid.area
+    ang = neck_angles(grid, openings)
+    far = joint & (ang >= 90.0)
+    if far.sum() < MIN_RING_PIXELS:
+        far = joint
+    ref_c = weighted_median(sig_c[far], area[far])
+    ref_b = weighted_median(bright[far], area[far])
+    ref = weighted_median(sig[far], area[far])
+    pts = grid.points[grid.hit]
+    radius = float(np.median(np.linalg.norm(pts - grid.proj.barycentre, axis=1)))
+    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
+    ring = np.floor(ang / width).astype(np.int64)
+    # each ring's colour and brightness levels relative to the wall's, out to 90 degrees
+    rings: list[tuple[int, float, float]] = []
+    for k in range(math.ceil(90.0 / width)):
+        sel = joint & (ring == k)
+        if sel.sum() >= MIN_RING_PIXELS:
+            rings.append((k, weighted_median(sig_c[sel], area[sel]) / max(ref_c, 1e-9),
+                          weighted_median(bright[sel], area[sel]) / max(ref_b, 1e-9)))
+    if not rings:
+        return sig, 0.0, {"band": False, "reason": "no compared wall around the neck"}
+    # the cap: out to the first ring at the wall's colour noise level beyond the noisiest
+    # ring (the opening; rings inside it may be quiet: unseen by A, or a uniform view into
+    # the urethra)
+    cap_deg = rings[0][0] * width
+    peak = max(range(len(rings)), key=lambda i: rings[i][1])
+    cap_levels, band_levels = [], []
+    first = 0  # the first ring after the cap
+    if rings[peak][1] > BAND_LEVEL:
+        first = next((i for i in range(peak + 1, len(rings)) if rings[i][1] <= BAND_LEVEL),
+                     len(rings))
+        cap_deg = (rings[first - 1][0] + 1) * width
+        cap_levels = [round(float(r[1]), 2) for r in rings[:first]]
+    band_deg = cap_deg
+    for k, _, level in rings[first:]:
+        if level <= BAND_LEVEL:
+            break
+        band_deg = (k + 1) * width
+        band_levels.append(round(float(level), 2))
+    info: dict[str, Any] = {"band": band_deg > cap_deg, "cap_deg": round(cap_deg, 2),
+                            "band_to_deg": round(max(band_deg, cap_deg), 2),
+                            "ring_deg": round(width, 3), "cap_colour_levels": cap_levels,
+                            "band_brightness_levels": band_levels}
+    if band_deg <= cap_deg:
+        return sig, cap_deg, info
+    factor = ref / max(ref_c, 1e-9)
+    band = joint & (ang >= cap_deg) & (ang < band_deg)
+    out = np.where(band, np.minimum(sig, factor * sig_c), sig).astype(sig.dtype)
+    info["colour_factor"] = round(float(factor), 3)
+    log.info("compare: the wall %.0f-%.0f° from the neck is tested on its colour alone (its "
+             "brightness up to %.1f times as noisy as the rest); cap cut out to %.0f°",
+             cap_deg, band_deg, max(band_levels), cap_deg)
+    return out, cap_deg, info

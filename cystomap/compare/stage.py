@@ -174,8 +174,9 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     found = FindBack()
     if reg.registered:
         try:
-            openings = (opening_directions(a, b, atlas_a, atlas_b, reg)
-                        if cfg.opening_deg > 0 or cfg.neck_levelling or cfg.neck_ratio
+            neck_rules = (cfg.opening_deg > 0, cfg.neck_levelling, cfg.neck_ratio,
+                          cfg.neck_chroma)
+            openings = (opening_directions(a, b, atlas_a, atlas_b, reg) if any(neck_rules)
                         else np.zeros((0, 3)))
             diff, grid_info = _difference(atlas_a, atlas_b, reg, cfg, openings)
         except InputError as exc:  # nothing seen by both: say so, do not crash
