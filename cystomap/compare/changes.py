@@ -581,7 +581,8 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     import cv2
 
     grid: Grid = diff.grid
-    neck_info: dict[str, Any] = {"levelled": False}
+    neck_info: dict[str, Any] = ({"band": False, "reason": "no camera at the neck"}
+                                 if cfg.neck_chroma else {"levelled": False})
     if cfg.neck_levelling and openings is not None and len(openings):
         diff.significance, neck_info = level_around_neck(diff.significance, diff.joint, grid,
                                                          openings, 2 * cfg.smooth_mm)

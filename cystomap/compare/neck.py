@@ -36,12 +36,15 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cystomap.compare.grid import Grid
 from cystomap.compare.null import weighted_median
+
+if TYPE_CHECKING:
+    from cystomap.compare.difference import Difference
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +64,16 @@ def neck_angles(grid: Grid, openings: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
+def neck_rings(grid: Grid, ang: np.ndarray, ring_mm: float) -> tuple[np.ndarray, float]:
+    """(H, W) ring index of each pixel around the neck (``ang``: its angle to the neck, from
+    :func:`neck_angles`) and the rings' width in degrees: ``ring_mm`` on the wall at the
+    median radius of B's wall, at least two grid rows."""
+    radius = float(np.median(np.linalg.norm(grid.points[grid.hit] - grid.proj.barycentre,
+                                            axis=1)))
+    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
+    return np.floor(ang / width).astype(np.int64), width
+
+
 def level_around_neck(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: np.ndarray,
                       ring_mm: float) -> tuple[np.ndarray, dict[str, Any]]:
     """``sig`` with the wall around the neck scaled to the whole compared wall's noise level
@@ -70,11 +83,8 @@ def level_around_neck(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: 
         return sig, {"levelled": False, "reason": "no camera at the neck"}
     area = grid.area
     ref = weighted_median(sig[joint], area[joint])
-    pts = grid.points[grid.hit]
-    radius = float(np.median(np.linalg.norm(pts - grid.proj.barycentre, axis=1)))
-    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
     ang = neck_angles(grid, openings)
-    ring = np.floor(ang / width).astype(np.int64)
+    ring, width = neck_rings(grid, ang, ring_mm)
     centres, factors, medians = [], [], []
     started = False
     for k in range(math.ceil(90.0 / width)):
@@ -117,10 +127,7 @@ def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid
     wall ``use``, interpolated between ring centres, out to 90°; 1 beyond and in rings with
     too little wall. A ring around the neck is 2π r sin θ long (some 75 mm at 20° in a
     35 mm bladder), so a lesion holds a minor share of it and its median is the wall's."""
-    radius = float(np.median(np.linalg.norm(grid.points[grid.hit] - grid.proj.barycentre,
-                                            axis=1)))
-    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
-    ring = np.floor(ang / width).astype(np.int64)
+    ring, width = neck_rings(grid, ang, ring_mm)
     log_ratio = np.log(b_rgb + 8.0) - np.log(a_rgb + 8.0)
     area = grid.area
     centres, medians = [], []
@@ -147,8 +154,7 @@ def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid
     return factor, info
 
 
-
-def chroma_band(diff: Any, grid: Grid, openings: np.ndarray, ring_mm: float,
+def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: float,
                 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """The significance with the wall around the neck tested on its colour alone, the angle
     (degrees) of the neck's cap to cut out, and what was done (for ``compare.json``).
@@ -176,10 +182,7 @@ def chroma_band(diff: Any, grid: Grid, openings: np.ndarray, ring_mm: float,
     ref_c = weighted_median(sig_c[far], area[far])
     ref_b = weighted_median(bright[far], area[far])
     ref = weighted_median(sig[far], area[far])
-    pts = grid.points[grid.hit]
-    radius = float(np.median(np.linalg.norm(pts - grid.proj.barycentre, axis=1)))
-    width = math.degrees(max(ring_mm, 2 * grid.mm_per_px_y) / max(radius, 1e-9))
-    ring = np.floor(ang / width).astype(np.int64)
+    ring, width = neck_rings(grid, ang, ring_mm)
     # each ring's colour and brightness levels relative to the wall's, out to 90 degrees
     rings: list[tuple[int, float, float]] = []
     for k in range(math.ceil(90.0 / width)):
