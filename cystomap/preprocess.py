@@ -54,6 +54,7 @@ from cystomap.video import (
     erode,
     fit_circle,
     fov_mask,
+    lit_extent,
     ordered_map,
     static_pixels,
     temporal_std,
@@ -82,6 +83,14 @@ class PreprocessConfig:
     # recording with the same frames registered and an atlas as close to the truth (README,
     # "1080p at half the working size").
     scale: float = setting(1.0, "(0, 4]")
+    # Largest working size: the outputs are shrunk further (INTER_AREA) so that the longest
+    # side of the lit field of view (the detected mask's bounding box; the frame's with mask
+    # "full") is at most this many pixels; 0 = no limit. preprocess.json records the scale
+    # used. 1280 is twice the size SfM detects its features at (sfm.max_image_size 640) and
+    # the size of its second mapping: 1280x720 and smaller video and a scope's round image
+    # in a 1080p frame keep their size, a 1080p frame filled by the image works at 1280x720.
+    # Not applied with mask "circle" and an explicit mask_radius (given in output pixels).
+    max_image_size: int = setting(1280, ">= 0")
     # Pinhole camera of the undistorted images (principal point and aspect ratio always kept,
     # only the focal length changes): "same" = keep fx, fy, cx, cy (with barrel distortion the
     # far periphery of the source falls outside); "crop" = the focal length at which every output
@@ -156,7 +165,15 @@ def preprocess_frames(
     t0 = time.perf_counter()
     paths = _list_frames(frames_dir, camera)
     geo = _Geometry(camera, cfg)
-    mask, circle = _field_of_view(paths, geo, cfg)
+    fov = _lit_field(paths, geo, cfg)
+    scale = working_scale(fov, cfg, (geo.width, geo.height))
+    if scale != cfg.scale:
+        geo = _Geometry(camera, cfg, scale)
+        log.info("preprocess: working at scale %.4g (%dx%d; scale %g asked): the lit field's "
+                 "longest side at most max_image_size %d px", scale, geo.width, geo.height,
+                 cfg.scale, cfg.max_image_size)
+        fov = _resized_mask(fov, geo.width, geo.height)
+    mask, circle = _field_of_view(fov, geo, cfg)
     share = float(np.count_nonzero(mask)) / mask.size
     if share < 0.01:
         raise StageError(f"{frames_dir}: the field-of-view mask is empty (mask={cfg.mask!r})")
@@ -189,6 +206,7 @@ def preprocess_frames(
             "frames": len(paths),
             "input_camera": camera.to_dict(),
             "camera": geo.out_camera.to_dict(),
+            "scale": geo.scale,
             "mask": {"mode": cfg.mask, "area_share": round(share, 4),
                      "circle": [round(v, 2) for v in circle] if circle else None},
             "mean_level": {"min": round(min(levels), 2), "max": round(max(levels), 2)},
@@ -242,20 +260,53 @@ def _read(path: Path, camera: Camera, flags: int = cv2.IMREAD_COLOR) -> np.ndarr
     return image
 
 
+def _explicit_circle(cfg: PreprocessConfig) -> bool:
+    return cfg.mask == "circle" and cfg.mask_radius > 0
+
+
+def _lit_field(paths: list[Path], geo: _Geometry, cfg: PreprocessConfig) -> np.ndarray | None:
+    """The detected field of view at ``geo``'s size (255 = lit), or None where it is not
+    detected (mask "full", or "circle" with an explicit radius)."""
+    if cfg.mask == "full" or _explicit_circle(cfg):
+        return None
+    return _detect_fov(paths, geo, cfg, with_static=cfg.mask == "auto")
+
+
+def working_scale(fov: np.ndarray | None, cfg: PreprocessConfig, size: tuple[int, int] = (0, 0)
+                  ) -> float:
+    """``cfg.scale``, lowered so the lit field's longest side (``fov`` at ``cfg.scale``; the
+    image's, ``size`` at ``cfg.scale``, without one) is at most ``cfg.max_image_size``."""
+    if cfg.max_image_size <= 0 or _explicit_circle(cfg):
+        return cfg.scale
+    longest = lit_extent(fov) if fov is not None else max(size)
+    if longest <= cfg.max_image_size:
+        return cfg.scale
+    return cfg.scale * cfg.max_image_size / longest
+
+
+def _resized_mask(mask: np.ndarray | None, width: int, height: int) -> np.ndarray | None:
+    if mask is None or mask.shape == (height, width):
+        return mask
+    resized = cv2.resize(mask, (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.where(resized >= 128, 255, 0).astype(np.uint8)
+
+
 def _field_of_view(
-    paths: list[Path], geo: _Geometry, cfg: PreprocessConfig
+    detected: np.ndarray | None, geo: _Geometry, cfg: PreprocessConfig
 ) -> tuple[np.ndarray, tuple[float, float, float] | None]:
-    """Final mask (output size, 255 = valid) and the circle used, if any."""
+    """Final mask (output size, 255 = valid) from the ``detected`` field of view (output size;
+    :func:`_lit_field`), and the circle used, if any."""
     h, w = geo.height, geo.width
     circle: tuple[float, float, float] | None = None
     if cfg.mask == "full":
         fov = np.full((h, w), 255, np.uint8)
-    elif cfg.mask == "circle" and cfg.mask_radius > 0:
+    elif _explicit_circle(cfg):
         cx, cy = cfg.mask_center if cfg.mask_center is not None else ((w - 1) / 2, (h - 1) / 2)
         circle = (float(cx), float(cy), float(cfg.mask_radius))
         fov = circle_mask((h, w), *circle)
     else:
-        fov = _detect_fov(paths, geo, cfg, with_static=cfg.mask == "auto")
+        assert detected is not None
+        fov = detected
         if cfg.mask == "circle":
             circle = fit_circle(fov)
             if circle is None:

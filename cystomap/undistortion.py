@@ -21,9 +21,11 @@ __all__ = ["_Geometry", "undistort_points"]
 class _Geometry:
     """Resize + undistortion maps and the undistorted pinhole camera."""
 
-    def __init__(self, camera: Camera, cfg: PreprocessConfig) -> None:
+    def __init__(self, camera: Camera, cfg: PreprocessConfig, scale: float | None = None) -> None:
+        """``scale`` (default ``cfg.scale``): output size / ``camera``'s size."""
         self.camera = camera
-        src = camera.scaled(cfg.scale) if cfg.scale != 1.0 else camera
+        self.scale = cfg.scale if scale is None else scale
+        src = camera.scaled(self.scale) if self.scale != 1.0 else camera
         self.src = src
         self.width, self.height = src.width, src.height
         size = (src.width, src.height)

@@ -173,6 +173,15 @@ def _hull_of_largest(binary: np.ndarray, min_share: float) -> np.ndarray | None:
     return mask
 
 
+def lit_extent(mask: np.ndarray) -> int:
+    """Longest side (px) of the bounding box of the lit pixels of ``mask`` (> 127); the
+    image's longest side when none is lit."""
+    ys, xs = np.nonzero(mask > 127)
+    if len(xs) == 0:
+        return max(mask.shape[:2])
+    return int(max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1))
+
+
 def erode(mask: np.ndarray, px: int) -> np.ndarray:
     """Shrink a 0/255 mask by ``px`` pixels away from its rim inside the image (where the FOV is
     cut by the image edge, the edge is not a rim and is not eroded; a full mask stays full)."""

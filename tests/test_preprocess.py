@@ -166,6 +166,37 @@ def test_detects_a_circular_field_of_view(tmp_path: Path) -> None:
     assert not _read(out, "color")[~_mask(out)].any()
 
 
+def test_working_size_follows_the_lit_field(tmp_path: Path) -> None:
+    """max_image_size bounds the lit field's longest side, not the frame's: a round image in a
+    wider black frame keeps more of its pixels than a frame it fills."""
+    circle = (170.0, 118.0, 112.0)  # lit box 225 x 225 in the 320 x 240 frame
+    camera = Camera.from_fov(W, H, 75.0)
+    frames = _frames_dir(tmp_path, _circle_frames(10, circle, text=False))
+    out = preprocess_frames(frames, tmp_path / "default", camera, PreprocessConfig(mask="circle"))
+    assert _read(out, "color").shape[:2] == (H, W)  # 225 px <= the default 1280
+    cfg = PreprocessConfig(mask="circle", mask_erode_px=0, max_image_size=120)
+    out = preprocess_frames(frames, tmp_path / "capped", camera, cfg)
+    summary = json.loads((out / "preprocess.json").read_text())
+    assert summary["scale"] == pytest.approx(120 / 225, abs=0.01)  # not 120 / 320
+    cam = Camera.load(out / "camera.json")
+    assert (cam.width, cam.height) == (round(W * summary["scale"]), round(H * summary["scale"]))
+    assert cam.fx == pytest.approx(camera.fx * cam.width / W)
+    cx, cy, r = summary["mask"]["circle"]
+    s = summary["scale"]
+    assert (cx, cy, r) == pytest.approx(((circle[0] + 0.5) * s - 0.5, (circle[1] + 0.5) * s - 0.5,
+                                         circle[2] * s), abs=1.5)
+    assert _read(out, "color").shape[:2] == (cam.height, cam.width)
+    # a frame the image fills: its longest side is bounded (scale 1 asked, 0.5 given)
+    full = preprocess_frames(frames, tmp_path / "full", camera,
+                             PreprocessConfig(mask="full", max_image_size=160))
+    assert _read(full, "enhanced").shape == (H // 2, W // 2)
+    # an explicit scale already under the bound is kept; max_image_size 0 = no bound
+    for cfg in (PreprocessConfig(mask="full", scale=0.25, max_image_size=160),
+                PreprocessConfig(mask="full", scale=0.25, max_image_size=0)):
+        out = preprocess_frames(frames, tmp_path / f"s{cfg.max_image_size}", camera, cfg)
+        assert _read(out, "enhanced").shape == (H // 4, W // 4)
+
+
 # ------------------------------------------------------------------ photometry
 
 

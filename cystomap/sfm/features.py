@@ -21,6 +21,7 @@ import numpy as np
 from cystomap.camera import Camera, colmap_params
 from cystomap.errors import InputError
 from cystomap.sfm.config import SfmConfig
+from cystomap.video import lit_extent as video_lit_extent
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +71,7 @@ def lit_extent(mask_path: Path | None, camera: Camera) -> int:
     mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
     if mask is None or not (mask > 127).any():
         return longest  # reported by _working_mask
-    ys, xs = np.nonzero(mask > 127)
-    return int(max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1))
+    return video_lit_extent(mask)
 
 
 def working_scale(camera: Camera, cfg: SfmConfig, lit_px: int | None = None) -> float:
