@@ -78,18 +78,20 @@ class PreprocessConfig:
     """Settings of the ``preprocess`` stage (config section ``preprocess``)."""
 
     # Resize factor of the outputs (and of camera.json) relative to the input frames,
-    # e.g. 0.375 turns 1280x720 into 480x270. Every later stage works at this size: 0.5 for
-    # 1080p recordings cut preprocess by 70 % and the atlas by 64 % on a 60 s phantom
-    # recording with the same frames registered and an atlas as close to the truth (README,
-    # "1080p at half the working size").
+    # e.g. 0.375 turns 1280x720 into 480x270; max_image_size may lower it further. Every
+    # later stage works at this size: 0.5 for 1080p recordings cut preprocess by 70 % and the
+    # atlas by 64 % on a 60 s phantom recording with the same frames registered and an atlas
+    # as close to the truth (README, "1080p at half the working size").
     scale: float = setting(1.0, "(0, 4]")
     # Largest working size: the outputs are shrunk further (INTER_AREA) so that the longest
     # side of the lit field of view (the detected mask's bounding box; the frame's with mask
     # "full") is at most this many pixels; 0 = no limit. preprocess.json records the scale
     # used. 1280 is twice the size SfM detects its features at (sfm.max_image_size 640) and
     # the size of its second mapping: 1280x720 and smaller video and a scope's round image
-    # in a 1080p frame keep their size, a 1080p frame filled by the image works at 1280x720.
-    # Not applied with mask "circle" and an explicit mask_radius (given in output pixels).
+    # in a 1080p frame keep their size, a 1080p frame filled by the image works at 1280x720
+    # (960 there: the model of scale 0.5 digit for digit, 4-9 s sooner on a 60 s recording; README,
+    # "The working size bounded by the lit field"). Not applied with mask "circle" and an
+    # explicit mask_radius (given in output pixels).
     max_image_size: int = setting(1280, ">= 0")
     # Pinhole camera of the undistorted images (principal point and aspect ratio always kept,
     # only the focal length changes): "same" = keep fx, fy, cx, cy (with barrel distortion the
