@@ -412,6 +412,30 @@ def test_lesion_beside_the_neck_cap_is_not_dropped_with_it(sphere) -> None:
     assert 0.7 * 16.8 < g.diameter_mm < 1.15 * 16.8
 
 
+def test_faint_lesion_at_the_edge_of_the_neck_cap_is_measured_against_the_wall(sphere) -> None:
+    """A faint 7 mm lesion (RGB -10, -10, -4) whose edge is 1 deg outside the neck's cap,
+    where B shows the opening in a colour like the lesion's. The local colour check compares
+    the region with the wall around it; with the cap in that ring, a third of the ring
+    changed like the lesion and the lesion was dropped as photometric residue (held-out pairs
+    111 and 163: neck lesions dropped at local ΔE 2.7-3.4). The ring is the wall only."""
+    grid = sphere[2]
+    opening = np.array([math.cos(-1.0), math.sin(-1.0), 0.0])
+    pts = np.nan_to_num(grid.points)
+    ang = np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+    centre = _on_sphere(0.0, -1.0 + math.radians(30.0 + math.degrees(3.5 / RADIUS) + 1.0))
+    rng = np.random.default_rng(5)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    colour = WALL + np.array([-10.0, -10.0, -4.0])
+    for where in (grid.hit & (ang < 30.0), grid.hit & (np.linalg.norm(pts - centre, axis=-1) < 3.5)):
+        b[where] = colour + rng.normal(0, 2.0, (int(where.sum()), 3))
+    regions = _detect(sphere, a, b, grid.hit, grid.hit, openings=opening[None], opening_deg=30.0,
+                      neck_chroma=False)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 2.0
+    assert 0.8 * 7 < regions[0].diameter_mm < 1.2 * 7
+
+
 def _blotches(seed: int, pts: np.ndarray, scale_mm: float, n: int = 120) -> np.ndarray:
     """(H, W, 3) smooth colour field of unit spread, blotches of about ``scale_mm``."""
     rng = np.random.default_rng(seed)

@@ -73,7 +73,8 @@ significance to the wall's noise level ring by ring instead: on held-out pairs i
 better (README, "The wall around the neck").
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
-``local_delta_e``). Photometric residue the illumination matching leaves
+``local_delta_e``; the ring is wall: the neck's cap, whose colours change from session to
+session, is left out of it). Photometric residue the illumination matching leaves
 (a gain or white balance varying smoothly over the wall) is significant by its size but
 shifts region and ring alike; a lesion changes the region only. (``min_delta_e``, a floor on
 the region's own mean colour change, moves with that residue and is off by default.)
@@ -457,8 +458,10 @@ class _Checks:
                     if ring.any() else 0.0)
         if enclosed < cfg.min_enclosed:
             return "at_edge", None
-        r2, c2 = np.nonzero(ring & sub_joint)
-        ring_pix = (r2 + r_lo) * w + c_idx[c2]  # the compared ring (flat grid indices)
+        # the compared ring (flat grid indices), on the wall: not over the neck's cap, whose
+        # colours (the opening bridged by the mesh) change from session to session
+        r2, c2 = np.nonzero(ring & sub_joint & ~self.cap[r_lo:r_hi][:, c_idx])
+        ring_pix = (r2 + r_lo) * w + c_idx[c2]
         rr, cc = np.nonzero(outline)
         pix_all = (rr + r_lo) * w + c_idx[cc]
         rr, cc = np.nonzero(seen_outline)
