@@ -174,7 +174,8 @@ def preprocess_frames(
         log.info("preprocess: working at scale %.4g (%dx%d; scale %g asked): the lit field's "
                  "longest side at most max_image_size %d px", scale, geo.width, geo.height,
                  cfg.scale, cfg.max_image_size)
-        fov = _resized_mask(fov, geo.width, geo.height)
+        if fov is not None:
+            fov = _resized_mask(fov, geo.width, geo.height)
     mask, circle = _field_of_view(fov, geo, cfg)
     share = float(np.count_nonzero(mask)) / mask.size
     if share < 0.01:
@@ -274,8 +275,7 @@ def _lit_field(paths: list[Path], geo: _Geometry, cfg: PreprocessConfig) -> np.n
     return _detect_fov(paths, geo, cfg, with_static=cfg.mask == "auto")
 
 
-def working_scale(fov: np.ndarray | None, cfg: PreprocessConfig, size: tuple[int, int] = (0, 0)
-                  ) -> float:
+def working_scale(fov: np.ndarray | None, cfg: PreprocessConfig, size: tuple[int, int]) -> float:
     """``cfg.scale``, lowered so the lit field's longest side (``fov`` at ``cfg.scale``; the
     image's, ``size`` at ``cfg.scale``, without one) is at most ``cfg.max_image_size``."""
     if cfg.max_image_size <= 0 or _explicit_circle(cfg):
@@ -286,8 +286,9 @@ def working_scale(fov: np.ndarray | None, cfg: PreprocessConfig, size: tuple[int
     return cfg.scale * cfg.max_image_size / longest
 
 
-def _resized_mask(mask: np.ndarray | None, width: int, height: int) -> np.ndarray | None:
-    if mask is None or mask.shape == (height, width):
+def _resized_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A 0/255 mask at another size (linear, then thresholded at half)."""
+    if mask.shape == (height, width):
         return mask
     resized = cv2.resize(mask, (width, height), interpolation=cv2.INTER_LINEAR)
     return np.where(resized >= 128, 255, 0).astype(np.uint8)
@@ -345,10 +346,7 @@ def _detect_fov(paths: list[Path], geo: _Geometry, cfg: PreprocessConfig, with_s
             log.info("preprocess: %.1f%% of the FOV is static (overlay, lens dirt): masked out",
                      100 * np.count_nonzero(static) / np.count_nonzero(mask))
             mask[static] = 0
-    if work != (w, h):
-        mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_LINEAR)
-        mask = np.where(mask >= 128, 255, 0).astype(np.uint8)
-    return mask
+    return _resized_mask(mask, w, h)
 
 
 # --------------------------------------------------------------------------- photometry
