@@ -118,6 +118,33 @@ def test_lesion_running_into_wall_a_missed_is_followed_in_b(sphere) -> None:
     assert np.linalg.norm([only_seen[0].x, only_seen[0].y, only_seen[0].z] - sphere[3]) > 2.0
 
 
+def test_lesion_is_not_followed_along_the_rim_of_wall_b_did_not_see(sphere) -> None:
+    """A 10 mm lesion; below it a 3 mm strip B did not see (its relief hid the wall behind
+    it), whose upper rim B painted in the lesion's colours (a 1.5 mm smear 30 mm along the
+    strip, from grazing views). The rim is within the edge margin of B's unseen wall, so the
+    region is not followed along it: one region of the lesion's size on its place (held-out
+    pair 229's 13.2 mm papillary was measured as an 18.6 mm region off its place)."""
+    _, _, grid, centre, up = sphere
+    off, hit = _offset(sphere)
+    side = np.cross(centre / RADIUS, up)
+    along = (np.nan_to_num(grid.points) - centre) @ side
+    b_missed = hit & (off < -6.0) & (off > -9.0)
+    smear = hit & (off >= -6.0) & (off < -4.5) & (np.abs(along) < 15.0)
+    rng = np.random.default_rng(3)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    lesion = hit & (np.linalg.norm(np.nan_to_num(grid.points) - centre, axis=-1) < 5.0)
+    b[lesion | smear] = LESION + rng.normal(0, 2.0, (int((lesion | smear).sum()), 3))
+    b[b_missed] = 0.0
+    regions = _detect(sphere, a, b, hit, hit & ~b_missed)
+    assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    g = regions[0]
+    assert 0.8 * 10.0 < g.diameter_mm < 1.2 * 10.0
+    assert np.linalg.norm([g.x, g.y, g.z] - centre) < 1.5
+    extent = np.ptp(along.ravel()[g.pixels])
+    assert extent < 13.0, extent  # not along the rim (30 mm)
+
+
 def _mottled_pair(sphere, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Session A and B colours of a mottled wall (3-8 mm blotches of ±15 RGB units), without
     change: B's texture is displaced by a smooth field of
@@ -434,6 +461,32 @@ def test_faint_lesion_at_the_edge_of_the_neck_cap_is_measured_against_the_wall(s
     assert len(regions) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
     assert np.linalg.norm([regions[0].x, regions[0].y, regions[0].z] - centre) < 2.0
     assert 0.8 * 7 < regions[0].diameter_mm < 1.2 * 7
+
+
+def test_an_opening_only_one_session_shows_does_not_bend_the_tone_curve(sphere) -> None:
+    """No change, a wall with dark vessels (half its colour, 3 % of it) in both sessions; B
+    also shows the neck as a black opening (4 % of the compared wall) where A shows wall. A
+    tone curve fitted over everything maps A's darkest 4 % (its vessels) onto B's black:
+    every vessel became a 'change' (held-out no-change pair 1159: four false regions along
+    vessels). Fitted on the wall both show as wall, nothing is reported."""
+    grid = sphere[2]
+    opening = np.array([math.cos(-1.0), math.sin(-1.0), 0.0])
+    pts = np.nan_to_num(grid.points)
+    ang = np.degrees(np.arccos(np.clip((pts / RADIUS) @ opening, -1, 1)))
+    vessels = grid.hit & (np.abs(_blotches(7, pts, 25.0)[..., 0]) < 0.04)
+    rng = np.random.default_rng(5)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    a[vessels] *= 0.5
+    b[vessels] *= 0.5
+    hole = grid.hit & (ang < 23.0)
+    b[hole] = 5.0 + rng.normal(0, 1.0, (int(hole.sum()), 3))
+    share = float(grid.area[hole].sum() / grid.area[grid.hit].sum())
+    assert 0.03 < share < 0.05 and 0.02 < float(grid.area[vessels].sum()
+                                                / grid.area[grid.hit].sum()) < 0.05
+    regions = _detect(sphere, a, b, grid.hit, grid.hit, openings=opening[None], opening_deg=25.0,
+                      neck_chroma=False)
+    assert regions == [], [(r.diameter_mm, r.delta_e) for r in regions]
 
 
 def _blotches(seed: int, pts: np.ndarray, scale_mm: float, n: int = 120) -> np.ndarray:

@@ -159,7 +159,8 @@ class CompareConfig:
     ring_mm: float = setting(2.0, "> 0")
     # where session A shows an opening (lumen: the urethra, an orifice; median luminance
     # below this share of the compared wall's), B's view into it is not comparable: a new
-    # change must appear on wall that A showed as wall
+    # change must appear on wall that A showed as wall. Pixels either session shows this dark
+    # are also left out of the tone curve that matches A's colours to B's
     min_luminance_a: float = setting(0.35, "[0, 1)")
     # the bladder neck: registered cameras at or beyond the wall (the scope entering, either
     # session) point to it; the mesh caps the opening and the texture there (the urethra

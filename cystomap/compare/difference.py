@@ -206,11 +206,13 @@ def _grey(rgb: np.ndarray) -> np.ndarray:
 
 
 def refine_flow(grid: Grid, b_rgb: np.ndarray, a_rgb: np.ndarray, joint: np.ndarray,
-                smooth_mm: float, max_mm: float) -> tuple[np.ndarray, dict[str, Any]]:
+                smooth_mm: float, max_mm: float, min_luminance: float,
+                ) -> tuple[np.ndarray, dict[str, Any]]:
     """Dense residual alignment (H, W, 2), in grid pixels: B's pixel x shows A's content at
     x + flow(x).
 
-    DIS optical flow both ways on the grey images (A tone-matched to B first); vectors that
+    DIS optical flow both ways on the grey images (A tone-matched to B first, on the wall
+    both show as wall: :func:`shown_as_wall` of ``min_luminance``); vectors that
     fail the forward-backward check (1 px) are dropped, the rest smoothed on the wall
     (normalised Gaussian of ``smooth_mm``) and clipped at ``max_mm``, so only a smooth
     correction of the spline remains: new texture (a lesion) has no counterpart to flow to
@@ -219,7 +221,8 @@ def refine_flow(grid: Grid, b_rgb: np.ndarray, a_rgb: np.ndarray, joint: np.ndar
     import cv2
 
     h, w = joint.shape
-    a_q, _ = quantile_match(a_rgb, b_rgb, joint, area=grid.area)
+    a_q, _ = quantile_match(a_rgb, b_rgb, shown_as_wall(a_rgb, b_rgb, joint, min_luminance),
+                            area=grid.area)
     gb = _grey(b_rgb)
     ga = np.where(joint, _grey(a_q), gb).astype(np.uint8)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -272,12 +275,28 @@ def weighted_percentile(x: np.ndarray, weights: np.ndarray | None, q: np.ndarray
     return np.interp(np.asarray(q) / 100.0 * float(ws.sum()), c, xs)
 
 
+def shown_as_wall(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_luminance: float,
+                  ) -> np.ndarray:
+    """``mask`` without the pixels either session shows darker than ``min_luminance`` times
+    its median luminance on ``mask``: an opening (the neck, the urethra, an orifice), not
+    wall. How much of an opening each session shows differs, so a tone curve fitted over
+    it maps the darkest wall of one session (its vessels) onto the other's lumen."""
+    weights = np.array([0.299, 0.587, 0.114], np.float32)
+    out = mask.copy()
+    for rgb in (a, b):
+        lum = rgb @ weights
+        out &= lum >= min_luminance * float(np.median(lum[mask]))
+    return out if out.sum() >= 100 else mask
+
+
 def quantile_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, n_q: int = 257,
                    area: np.ndarray | None = None,
                    ) -> tuple[np.ndarray, list[dict[str, float]]]:
     """A's channels mapped monotonically so their distribution on ``mask`` matches B's: by
     wall ``area`` when given (atlas pixels crowd towards the poles: a change there would
-    otherwise weigh in the tone curve as if it were several times its size)."""
+    otherwise weigh in the tone curve as if it were several times its size). Values below
+    the sample's darkest are scaled in proportion (an opening left out of ``mask`` stays
+    dark), values above its brightest clamped."""
     out = np.empty_like(a, dtype=np.float32)
     q = np.linspace(0, 100, n_q)
     info = []
@@ -286,7 +305,9 @@ def quantile_match(a: np.ndarray, b: np.ndarray, mask: np.ndarray, n_q: int = 25
         qa = weighted_percentile(a[..., c][mask], wa, q)
         qb = weighted_percentile(b[..., c][mask], wa, q)
         qa = np.maximum.accumulate(qa + np.arange(n_q) * 1e-6)  # strictly increasing
-        out[..., c] = np.interp(a[..., c], qa, qb)
+        x = a[..., c]
+        out[..., c] = np.where(x < qa[0], x * (qb[0] / max(float(qa[0]), 1e-6)),
+                               np.interp(x, qa, qb))
         slope = np.polyfit(qa[16:-16], qb[16:-16], 1)
         info.append({"gain": float(slope[0]), "offset": float(slope[1])})
     return out, info
@@ -340,6 +361,8 @@ class Difference:
     # B's colours smoothed (smooth_mm) over it; set by painted_b
     b_seen: np.ndarray | None = None
     b_smooth: np.ndarray | None = None
+    # (H, W) wall A saw, beyond its edge margin (compared unless B did not see it)
+    a_interior: np.ndarray | None = None
     # (H, W) significance of the part of the smoothed difference that no brightness change
     # (a gain along B's colour) explains, and the whitened size of the brightness part
     # (both only with neck_chroma)
@@ -370,7 +393,9 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
     joint = erode_mm(joint_raw, grid, cfg.edge_margin_mm)
     if joint.sum() < 100:
         joint = joint_raw
-    a_q, tone = quantile_match(a_rgb, b_rgb, joint, area=grid.area)
+    # the tone curve from wall both sessions show as wall (not the openings)
+    wall = shown_as_wall(a_rgb, b_rgb, joint, cfg.min_luminance_a)
+    a_q, tone = quantile_match(a_rgb, b_rgb, wall, area=grid.area)
     exclude = np.zeros_like(joint)
     info: dict[str, Any] = {"tone_match": tone}
     a_n = a_q
@@ -431,6 +456,7 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
         raw_difference_rms=float(np.sqrt(np.mean(delta[joint] ** 2))),
     )
     out = Difference(grid, b_rgb, a_n.astype(np.float32), joint, delta, smooth, sig, cov, info)
+    out.a_interior = erode_mm(grid.hit & a_seen, grid, cfg.edge_margin_mm)
     if getattr(cfg, "neck_chroma", False):
         u = sb[0] / np.maximum(np.linalg.norm(sb[0], axis=-1, keepdims=True), 1e-6)
         sig_c, bright = None, None

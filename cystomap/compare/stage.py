@@ -319,7 +319,7 @@ def _difference(atlas_a: SessionAtlas, atlas_b: SessionAtlas, reg: Registration,
         joint0 = grid.hit & b_seen & (a_seen > 0.999)
         if joint0.sum() >= 100:
             flow, flow_info = refine_flow(grid, b_rgb, a_rgb, joint0, cfg.flow_smooth_mm,
-                                          cfg.flow_max_mm)
+                                          cfg.flow_max_mm, cfg.min_luminance_a)
             if flow_info.get("flow"):
                 pa = compose(pa, flow)
                 maps = sampler.pixel_maps(pa.reshape(-1, 3), shape)
