@@ -85,11 +85,11 @@ of an unseen strip narrower than ``gap_fill_mm`` are one region, and its outline
 across the strip. Where a change runs into wall that B saw but A did not
 (``extend_into_unseen``), it is followed on B's smoothed colours (pixels at least half-way
 from the surrounding wall's colour to the region's, up to twice the compared part's
-equivalent diameter further; not when all it would add is wall A saw well, the rim of wall B
-itself did not see, which B paints from grazing views): the region is measured as B shows it,
-and ``observed_share`` says how much of it was compared (``delta_e`` and ``local_delta_e`` are
-measured on the compared part). Regions that end up describing the same wall (both pieces of a
-cut change followed into the gap) are reported once.
+equivalent diameter further; over wall A saw well, the rim of wall B itself did not see, which
+B paints from grazing views, only ``edge_margin_mm`` beyond the compared outline): the region
+is measured as B shows it, and ``observed_share`` says how much of it was compared
+(``delta_e`` and ``local_delta_e`` are measured on the compared part). Regions that end up
+describing the same wall (both pieces of a cut change followed into the gap) are reported once.
 
 Poles: the grid is azimuth/elevation, so its pixels crowd towards both poles (the dome and
 the neck). Whatever is a statistic of the wall is weighted by wall area (the tone match and
@@ -242,17 +242,18 @@ def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nd
 def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
                         sub_joint: np.ndarray, sub_hit: np.ndarray, rows: tuple[int, int],
                         c_idx: np.ndarray, ring_mm: float, open_px: float,
-                        gap_kernel: np.ndarray | None) -> np.ndarray:
+                        gap_kernel: np.ndarray | None, margin_mm: float) -> np.ndarray:
     """``outline`` grown over adjoining wall that B saw but that was not compared (A did not
     see it, or it is in A's edge margin) where B's smoothed colour is at least half-way from
     the surrounding wall's colour to the region's: the part of a change that lies on wall
     A missed. It grows at most twice the compared part's equivalent diameter, and across
     strips of wall B did not see either when narrower than ``gap_kernel`` (sub-window arrays).
-    Nothing is added when the growth would reach no wall A missed (all of it wall A saw well,
+    When the growth would reach no wall A missed (all of it wall A saw well,
     ``diff.a_interior``, left out of the comparison only as the edge margin of wall B did not
-    see): B paints that rim from grazing views (a raised lesion's smear beside the hole its
-    relief hides; held-out pair 229's 13.2 mm papillary, followed along such a rim, was
-    measured as an 18.6 mm region off its place and missed).
+    see), it keeps only that margin (``margin_mm``) around the outline: the change's own edge,
+    not a run along the rim, which B paints from grazing views (a raised lesion's smear
+    beside the hole its relief hides; held-out pair 229's 13.2 mm papillary, followed along
+    such a rim, was measured as an 18.6 mm region off its place and missed).
     """
     import cv2
 
@@ -291,7 +292,8 @@ def _extend_into_unseen(diff: Difference, outline: np.ndarray, seen: np.ndarray,
     kept = np.isin(lab, keep) & grown
     if diff.a_interior is not None and not (kept & ~outline
                                             & ~diff.a_interior[r_lo:r_hi][:, c_idx]).any():
-        return outline  # followed over wall A saw well only (the rim of B's unseen wall)
+        # over wall A saw well only (the rim of B's unseen wall): the change's edge, no further
+        kept &= outline | near_on_wall(outline, sub_pts, margin_mm)
     if gap_kernel is not None:
         return _close_across(kept, gap_kernel, sub_joint, sub_hit)
     return _fill_holes(kept) & sub_hit
@@ -457,7 +459,8 @@ class _Checks:
         if cfg.extend_into_unseen:
             outline = _extend_into_unseen(diff, outline, seen_outline, sub_joint, sub_hit,
                                           (r_lo, r_hi), c_idx, cfg.ring_mm,
-                                          cfg.morphology_mm / grid.mm_per_px_y, gap_kernel)
+                                          cfg.morphology_mm / grid.mm_per_px_y, gap_kernel,
+                                          cfg.edge_margin_mm)
         # the ring: wall within ring_mm of the outline, on the wall (atlas columns shrink
         # towards the poles: a ring of pixels there would be a sliver of the lesion's edge)
         sub_pts = grid.points[r_lo:r_hi][:, c_idx]
