@@ -117,7 +117,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
-from cystomap.compare.difference import Difference, Grid
+from cystomap.compare.difference import Difference, Grid, luminance
 from cystomap.compare.grid import cone_mask, within_cone
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
 from cystomap.compare.neck import chroma_band, level_around_neck
@@ -399,8 +399,7 @@ class _Checks:
         self.flat_delta = diff.delta.reshape(-1, 3)
         self.pdist = diff.point_distance.ravel() if diff.point_distance is not None else None
         self.a_rgb, self.b_rgb = diff.a_rgb.reshape(-1, 3), diff.b_rgb.reshape(-1, 3)
-        weights = np.array([0.299, 0.587, 0.114], np.float32)
-        self.lum_a, self.lum_b = self.a_rgb @ weights, self.b_rgb @ weights
+        self.lum_a, self.lum_b = luminance(self.a_rgb), luminance(self.b_rgb)
         jflat = diff.joint.ravel()
         self.lum_ref_a = max(float(np.median(self.lum_a[jflat])), 1e-6)
         self.lum_ref_b = max(float(np.median(self.lum_b[jflat])), 1e-6)

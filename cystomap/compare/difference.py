@@ -200,9 +200,16 @@ def warp_points(grid: Grid, warp_ba: Any, step: int = 4) -> np.ndarray:
     return out
 
 
+LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights (RGB)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Luma of RGB colours (..., 3) -> (...)."""
+    return rgb @ LUMA
+
+
 def _grey(rgb: np.ndarray) -> np.ndarray:
-    g = 0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]
-    return np.clip(np.rint(g), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(luminance(rgb)), 0, 255).astype(np.uint8)
 
 
 def refine_flow(grid: Grid, b_rgb: np.ndarray, a_rgb: np.ndarray, joint: np.ndarray,
@@ -281,10 +288,9 @@ def shown_as_wall(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_luminance:
     its median luminance on ``mask``: an opening (the neck, the urethra, an orifice), not
     wall. How much of an opening each session shows differs, so a tone curve fitted over
     it maps the darkest wall of one session (its vessels) onto the other's lumen."""
-    weights = np.array([0.299, 0.587, 0.114], np.float32)
     out = mask.copy()
     for rgb in (a, b):
-        lum = rgb @ weights
+        lum = luminance(rgb)
         out &= lum >= min_luminance * float(np.median(lum[mask]))
     return out if out.sum() >= 100 else mask
 
