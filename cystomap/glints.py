@@ -1,5 +1,6 @@
 """Specular glints: the saturated, near-white highlights of the wet wall and their rims,
-masked per frame (preprocess ``masks/``) before features, matching and densification."""
+masked per frame (preprocess ``masks/``) before features, matching and densification; and
+clipped pixels (preprocess ``clipped/``), whose colour the atlas does not blend."""
 
 from __future__ import annotations
 
@@ -49,3 +50,22 @@ def glint_mask(bgr: np.ndarray, mask: np.ndarray, z: float, dilate: float) -> np
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         blobs = cv2.dilate(blobs.view(np.uint8), kernel) > 0
     return blobs
+
+
+def clipped_mask(bgr: np.ndarray, mask: np.ndarray, level: int, dilate: float) -> np.ndarray:
+    """Pixels of one (undistorted, not levelled) BGR frame where any channel reaches ``level``
+    (8-bit clipping: overexposure, glints), inside ``mask``, dilated by ``dilate`` times the
+    image diagonal: bool image, True = clipped or next to it.
+
+    A clipped channel is not the wall's colour: an overexposed frame with its red channel cut
+    at 255 shows reddish mucosa paler and yellower, however its exposure is corrected later.
+    """
+    h, w = mask.shape
+    hit = (cv2.max(cv2.max(bgr[..., 0], bgr[..., 1]), bgr[..., 2]) >= level) & (mask > 0)
+    if not hit.any():
+        return hit
+    r = round(dilate * math.hypot(w, h))
+    if r > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        hit = cv2.dilate(hit.view(np.uint8), kernel) > 0
+    return hit & (mask > 0)

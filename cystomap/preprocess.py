@@ -25,8 +25,10 @@ file names as the input frames and 0 outside the mask; ``mask.png`` (uint8, 255 
 ``camera.json`` (the undistorted pinhole camera, distortion all zero, at the output size);
 ``masks/<name>.png`` (uint8 per frame, 255 = valid: ``mask.png`` minus the frame's specular
 glints and their rims, see :func:`glint_mask`; COLMAP's per-image mask convention; when
-``glint_z`` > 0); ``preprocess.json`` (settings, frames processed, mask area share, glint
-shares, timing).
+``glint_z`` > 0); ``clipped/<name>.png`` (uint8 per frame, 255 = a colour channel of the
+undistorted frame clipped, see :func:`clipped_mask`; the atlas gives those pixels no weight;
+when ``clip_level`` > 0); ``preprocess.json`` (settings, frames processed, mask area share,
+glint and clipped shares, timing).
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ import numpy as np
 
 from cystomap.camera import Camera
 from cystomap.errors import InputError, StageError
-from cystomap.glints import glint_mask
+from cystomap.glints import clipped_mask, glint_mask
 from cystomap.images import PNG_WRITE
 from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.settings import setting, validate
@@ -147,6 +149,11 @@ class PreprocessConfig:
     # that (its rim) and is dilated by glint_dilate times the image diagonal. 0 = no masks.
     glint_z: float = setting(6.0, ">= 0")
     glint_dilate: float = setting(0.006, "[0, 0.1]")
+    # Clipped pixels (clipped/<name>.png per frame, 255 = clipped): any of B, G, R of the
+    # undistorted frame (before levelling) at or above this 8-bit level, dilated by
+    # glint_dilate. A clipped channel is not the wall's colour (overexposed reddish mucosa
+    # turns pale), so the atlas does not blend them. 0 = no clipped masks.
+    clip_level: int = setting(250, "[0, 255]")
 
     def __post_init__(self) -> None:
         validate(self, "preprocess", {
@@ -189,15 +196,18 @@ def preprocess_frames(
         (tmp / "enhanced").mkdir()
         if cfg.glint_z > 0:
             (tmp / "masks").mkdir()
+        if cfg.clip_level > 0:
+            (tmp / "clipped").mkdir()
 
-        def work(path: Path) -> tuple[float, float]:
+        def work(path: Path) -> tuple[float, float, float]:
             return _process(path, tmp, geo, mask, leveller, cfg)
 
         last_log = time.perf_counter()
-        levels, glints = [], []
-        for level, glint in ordered_map(work, paths, cfg.threads):
+        levels, glints, clips = [], [], []
+        for level, glint, clip in ordered_map(work, paths, cfg.threads):
             levels.append(level)
             glints.append(glint)
+            clips.append(clip)
             now = time.perf_counter()
             if now - last_log > PROGRESS_EVERY_S:
                 last_log = now
@@ -217,6 +227,10 @@ def preprocess_frames(
                             "max": round(float(np.max(glints)), 5),
                             "frames_with_glints": int(np.count_nonzero(glints))}
             if cfg.glint_z > 0 else None,
+            "clipped_share": {"mean": round(float(np.mean(clips)), 5),
+                              "max": round(float(np.max(clips)), 5),
+                              "frames_with_clipping": int(np.count_nonzero(clips))}
+            if cfg.clip_level > 0 else None,
             "settings": asdict(cfg),
             "elapsed_s": round(time.perf_counter() - t0, 3),
         }
@@ -480,9 +494,9 @@ class _Leveller:
 def _process(
     path: Path, out: Path, geo: _Geometry, mask: np.ndarray, leveller: _Leveller,
     cfg: PreprocessConfig,
-) -> tuple[float, float]:
-    """Write color/, enhanced/ (and masks/) for one frame; returns its mean luminance inside
-    the mask and the share of the mask taken by glints."""
+) -> tuple[float, float, float]:
+    """Write color/, enhanced/ (and masks/, clipped/) for one frame; returns its mean luminance
+    inside the mask and the shares of the mask taken by glints and by clipped pixels."""
     image = geo.undistort(_read(path, geo.camera))
     lum = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
     gain, color_gain, target = leveller.gain(lum)
@@ -507,14 +521,18 @@ def _process(
         grey = cv2.createCLAHE(clipLimit=cfg.clahe_clip, tileGridSize=grid).apply(grey)
         grey[outside] = 0
     outputs = [("color", color), ("enhanced", grey)]
-    share = 0.0
+    share = clip_share = 0.0
+    inside = max(1, int(np.count_nonzero(mask)))
     if cfg.glint_z > 0:
         glint = glint_mask(matched, mask, cfg.glint_z, cfg.glint_dilate)
-        inside = max(1, int(np.count_nonzero(mask)))
         share = float(np.count_nonzero(glint & (mask > 0))) / inside
         outputs.append(("masks", np.where(glint, 0, mask).astype(np.uint8)))
+    if cfg.clip_level > 0:
+        clipped = clipped_mask(image, mask, cfg.clip_level, cfg.glint_dilate)
+        clip_share = float(np.count_nonzero(clipped)) / inside
+        outputs.append(("clipped", np.where(clipped, 255, 0).astype(np.uint8)))
     for sub, img in outputs:
         target_path = out / sub / path.name
         if not cv2.imwrite(str(target_path), img, PNG_WRITE):
             raise StageError(f"{target_path}: cannot write PNG")
-    return level, share
+    return level, share, clip_share

@@ -421,3 +421,26 @@ def test_glint_masks_cover_highlights_only(tmp_path: Path) -> None:
     off = preprocess_frames(frames, tmp_path / "off", CAMERA.without_distortion(),
                             PreprocessConfig(mask="full", level_sigma=0.0, glint_z=0))
     assert not (off / "masks").exists()
+
+
+def test_clipped_masks_cover_overexposed_pixels_only(tmp_path: Path) -> None:
+    """A frame overexposed until its red channel clips gets those pixels (and a rim of
+    glint_dilate) in clipped/<name>.png; frames without clipping get an empty mask."""
+    rng = np.random.default_rng(8)
+    wall = _mucosa(rng, 0.85)
+    over = np.clip(wall.astype(np.float32) * 1.6, 0, 255).astype(np.uint8)
+    truth = over.max(axis=2) >= 250
+    assert 0.1 < truth.mean() < 0.9  # the red channel clips in part of the frame
+    frames = _frames_dir(tmp_path, [wall, over])
+    cfg = PreprocessConfig(mask="full", level_sigma=0.0)
+    out = preprocess_frames(frames, tmp_path / "pre", CAMERA.without_distortion(), cfg)
+    assert _read(out, "clipped", "f000000.png").max() == 0
+    clipped = _read(out, "clipped", "f000001.png") > 0
+    assert clipped[truth].all()
+    grown = cv2.dilate(truth.astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
+    assert not clipped[~grown].any()  # no further than the dilation (r = 0.006 x 400 px)
+    summary = json.loads((out / "preprocess.json").read_text())
+    assert summary["clipped_share"]["frames_with_clipping"] == 1
+    off = preprocess_frames(frames, tmp_path / "off", CAMERA.without_distortion(),
+                            PreprocessConfig(mask="full", level_sigma=0.0, clip_level=0))
+    assert not (off / "clipped").exists()

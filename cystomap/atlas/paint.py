@@ -3,7 +3,8 @@
 First pass (survey): per frame, its depth map of the mesh, sharpness and coarse samples of the
 wall it sees, for the exposure model and the robust per-cell brightness. Second pass: every
 frame adds its exposure-corrected colours to the atlas pixels it sees, two-band blended, glints
-down-weighted; pixels no frame shows free of glints are inpainted.
+down-weighted and clipped pixels (the preprocess stage's ``clipped/`` masks) left out; pixels no
+frame shows free of glints are inpainted.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ class PaintResult:
     contributing: int
     n_photometric_obs: int
     n_inpainted: int = 0
+    n_clipped_only: int = 0  # atlas pixels only clipped frame pixels showed (left unseen)
 
 
 def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceRays,
@@ -69,13 +71,35 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
                              f"mask {mask.shape[1]}x{mask.shape[0]}")
         return img
 
-    def with_glint_weight(img: np.ndarray) -> np.ndarray:
-        """BGR + a 4th channel: the glint weight (255 everywhere when glint_rel is 0)."""
+    def read_clipped(view: View) -> np.ndarray | None:
+        """The preprocess stage's mask of clipped pixels of ``view`` (bool), if it wrote one."""
+        import cv2
+
+        if view.clipped is None:
+            return None
+        clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
+        if clipped is None or clipped.shape != mask.shape:
+            raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
+                             f"{mask.shape[1]}x{mask.shape[0]}")
+        return clipped > 0
+
+    def with_glint_weight(img: np.ndarray, view: View) -> np.ndarray:
+        """BGR + a 4th channel: the glint weight (255 everywhere when glint_rel is 0), 0 on
+        the pixels the preprocess stage found clipped (if it wrote their mask); the colour is
+        premultiplied by the weight, so that the pyramid's coarser levels average only the
+        usable pixels (see :func:`unpremultiply`)."""
         import cv2
 
         bgra = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
         if cfg.glint_rel > 0:
             bgra[..., 3] = glint_weight(img, mask, cfg.glint_rel)
+        clipped = read_clipped(view)
+        if clipped is not None:
+            bgra[..., 3][clipped] = 0
+        alpha = bgra[..., 3]
+        if alpha.min() < 255:
+            scaled = bgra[..., :3].astype(np.float32) * (alpha[..., None] / np.float32(255.0))
+            bgra[..., :3] = (scaled + np.float32(0.5)).astype(np.uint8)
         return bgra
 
     def footprint(i: int, depth: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray],
@@ -130,7 +154,7 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         img = read(view)
         depth = geo.depth_map(view, rays)
         out: dict[str, Any] = {"depth": depth, "sharp": sharpness(img, mask)}
-        img4 = with_glint_weight(img)
+        img4 = with_glint_weight(img, view)
         fp = footprint(i, depth)
         full = pyramid(img4, SURVEY_LEVELS if fp is None
                        else max(SURVEY_LEVELS, blend_levels(fp[2], fp[3])))
@@ -141,10 +165,11 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         if ok.any():
             oo = {k: a[ok] for k, a in o.items()}
             level = np.log2(np.maximum(view.K[0, 0] * cell_size[ok] / oo["dist"], 1.0))
-            bgrw = sample_mip(full[:SURVEY_LEVELS + 1], oo["u"], oo["v"], level)
-            grey = (bgrw[:, 0] + bgrw[:, 1] + bgrw[:, 2]) / 3
+            bgr, clean = unpremultiply(sample_mip(full[:SURVEY_LEVELS + 1], oo["u"], oo["v"],
+                                                  level))
+            grey = (bgr[:, 0] + bgr[:, 1] + bgr[:, 2]) / 3
             out.update(cell=cells[ok], obs=oo, logi=np.log(grey + 1.0),
-                       w=view_weights(oo, view, settings, 1.0, 1.0) * bgrw[:, 3] / 255.0)
+                       w=view_weights(oo, view, settings, 1.0, 1.0) * clean)
         return out
 
     budget = cfg.frame_cache_mb * 2**20
@@ -206,22 +231,27 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             return None
         px, oo, level, coarse = fp
         if pyr is None:
-            pyr = blend_pyramid(pyramid(with_glint_weight(read(view)),
+            pyr = blend_pyramid(pyramid(with_glint_weight(read(view), view),
                                         blend_levels(level, coarse)), level, coarse)
         wt = view_weights(oo, view, settings, float(sharp_rel[i]), dist_ref)
-        bgrw = sample_mip(pyr, oo["u"], oo["v"], level)
+        bgr, clean = unpremultiply(sample_mip(pyr, oo["u"], oo["v"], level))
         corr = photometry.correction(i, oo, view)
-        bgr = bgrw[:, :3] * corr[:, None]
-        clean = np.maximum(bgrw[:, 3] / np.float32(255.0), np.float32(1e-3))
+        bgr *= corr[:, None]
+        clean = np.maximum(clean, np.float32(1e-3))
         if ref_px is not None:
             ref = ref_px[cell_of[px]]
             known = np.isfinite(ref)
-            lum = sample_mip(pyr, oo["u"][known], oo["v"][known], coarse[known])[:, :3]
+            lum, _ = unpremultiply(sample_mip(pyr, oo["u"][known], oo["v"][known],
+                                              coarse[known]))
             grey = (lum[:, 0] + lum[:, 1] + lum[:, 2]) / 3
             ratio = (grey + 1.0) * corr[known] / np.exp(ref[known])
             clean[known] *= brightness_outlier_weight(ratio, cfg.outlier_rel)
         wt = wt * clean
-        return px, wt, wt ** np.float32(cfg.detail_power), bgr, clean
+        clipped = read_clipped(view)
+        unclipped = None if clipped is None else ~clipped[
+            np.clip(np.rint(oo["v"]).astype(np.intp), 0, mask.shape[0] - 1),
+            np.clip(np.rint(oo["u"]).astype(np.intp), 0, mask.shape[1] - 1)]
+        return px, wt, wt ** np.float32(cfg.detail_power), bgr, clean, unclipped
 
     t0 = time.perf_counter()
     # rows: weight, weight·R, weight·G, weight·B (soft weights, then detail weights)
@@ -229,19 +259,28 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
     det_acc = np.zeros((4, n_px), np.float32)
     n_views = np.zeros(n_px, np.uint16)
     best_clean = np.zeros(n_px, np.float32)
+    shown_unclipped = np.zeros(n_px, bool)
     contributing = 0
     for res in ordered_map(colours, range(len(views)), cfg.threads):
         if res is None:
             continue
-        px, wt, wd, bgr, clean = res
+        px, wt, wd, bgr, clean, unclipped = res
         contributing += 1
         n_views[px] += 1
+        shown_unclipped[px if unclipped is None else px[unclipped]] = True
         best_clean[px] = np.maximum(best_clean[px], clean)
         for acc, ww in ((soft_acc, wt), (det_acc, wd)):
             acc[0, px] += ww
             for ch in range(3):
                 acc[1 + ch, px] += ww * bgr[:, 2 - ch]  # BGR → RGB
     log.info("pass 2 (blending) over %d frames: %.1f s", len(views), time.perf_counter() - t0)
+    # wall that every frame showing it showed clipped has no colour to give: not seen
+    clipped_only = (n_views > 0) & ~shown_unclipped
+    n_clipped_only = int(clipped_only.sum())
+    if n_clipped_only:
+        log.info("%.2f%% of the seen atlas pixels were shown clipped by every frame: left unseen",
+                 100 * n_clipped_only / max(int(np.count_nonzero(n_views)), 1))
+        n_views[clipped_only] = 0
     seen = n_views > 0
     soft = (soft_acc[1:] / np.maximum(soft_acc[0], 1e-30)).T
     det = (det_acc[1:] / np.maximum(det_acc[0], 1e-30)).T
@@ -262,7 +301,17 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         n_inpainted = int(glinted.sum())
         if n_inpainted:
             colour = inpaint(colour, glinted, seen, cfg.height, cfg.width)
-    return PaintResult(colour, n_views, photometry, contributing, n_obs, n_inpainted)
+    return PaintResult(colour, n_views, photometry, contributing, n_obs, n_inpainted,
+                       n_clipped_only)
+
+
+def unpremultiply(bgrw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (float BGR) and weight (0..1) of samples of a premultiplied BGR + weight image:
+    a coarse level's colour is then the weighted mean of the usable pixels under it, not of
+    the glints and clipped pixels that its weight already counts less."""
+    alpha = bgrw[:, 3] / np.float32(255.0)
+    bgr = bgrw[:, :3] / np.maximum(alpha, np.float32(1.0 / 255.0))[:, None]
+    return np.minimum(bgr, np.float32(255.0)), alpha
 
 
 def inpaint(colour: np.ndarray, holes: np.ndarray, seen: np.ndarray, h: int, w: int) -> np.ndarray:

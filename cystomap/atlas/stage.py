@@ -4,7 +4,9 @@ Inputs: the SfM model (poses, shared PINHOLE camera), the preprocessed colour fr
 field-of-view mask, and the surface mesh of the ``mesh`` stage. Two passes over the frames
 (:mod:`cystomap.atlas.texture`): first depth maps, sharpness and coarse samples for the
 exposure model and the robust per-cell brightness; then every frame adds its exposure-corrected
-colours to the atlas pixels it sees (two-band blending, glints down-weighted and inpainted).
+colours to the atlas pixels it sees (two-band blending, glints down-weighted and inpainted;
+pixels the preprocess stage found clipped, ``clipped/``, given no weight, and wall that every
+frame showed clipped left unseen: it has no colour to give).
 
 Outputs in ``out_dir`` (written atomically):
 
@@ -19,7 +21,8 @@ Outputs in ``out_dir`` (written atomically):
   ``anatomy`` (the session's anatomical frame, :mod:`cystomap.anatomy`; the atlas axes are
   drawn from it), ``regions`` (area and seen share of each standard region),
   ``coverage_percent`` (share of the wall *area* seen, each pixel weighted by the area of its
-  wall patch), views statistics, photometry, settings and timing;
+  wall patch), views statistics, ``clipped_only_percent`` (share of the wall's pixels left
+  unseen because every frame showing them had them clipped), photometry, settings and timing;
 * ``model.obj`` + ``model.mtl`` + ``texture.png`` and ``model.glb`` (glTF 2.0): the mesh with
   the atlas as texture (unseen wall flat grey), UVs from the atlas projection, cut at the seam
   and around the poles (:mod:`cystomap.atlas.model`).
@@ -144,6 +147,8 @@ def build_atlas(
         "atlas_png": "RGBA; alpha 255 = seen, 0 = unseen (colour 0)",
         "frames": {"registered": len(views), "contributing": int(result.contributing)},
         "glint_inpainted_percent": 100.0 * result.n_inpainted / max(int(seen.sum()), 1),
+        "clipped_only_percent": 100.0 * result.n_clipped_only
+        / max(int(seen.sum()) + result.n_clipped_only, 1),
         "photometry": {
             "mode": cfg.exposure,
             "log_gain_min": float(result.photometry.gains.min()),

@@ -20,7 +20,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class View:
-    """One registered frame: world→camera pose, intrinsics and the colour image file."""
+    """One registered frame: world→camera pose, intrinsics, the colour image file and, if the
+    preprocess stage wrote one, its mask of clipped pixels (255 = clipped)."""
 
     name: str
     rotation: np.ndarray  # (3, 3) world → camera
@@ -29,6 +30,7 @@ class View:
     width: int
     height: int
     path: Path
+    clipped: Path | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -49,6 +51,7 @@ def load_views(
 
     preprocessed_dir = frames_dir(sfm_dir, preprocessed_dir)  # undistorted if self-calibrated
     color_dir = preprocessed_dir / "color"
+    clipped_dir = preprocessed_dir / "clipped"
     if not color_dir.is_dir():
         raise InputError(f"{color_dir}: preprocessed colour frames not found")
     rec = load_reconstruction(sfm_dir)
@@ -84,7 +87,9 @@ def load_views(
         h, w = mask.shape
         k = opencv_calibration(cam, w, h)
         rot, trans = world_to_camera(im)
-        views.append(View(im.name, rot, trans, k, w, h, path))
+        clipped = clipped_dir / path.name
+        views.append(View(im.name, rot, trans, k, w, h, path,
+                          clipped if clipped.is_file() else None))
     if missing:
         log.warning("%s: %d registered frame(s) without a colour file, e.g. %s", color_dir,
                     len(missing), missing[0])

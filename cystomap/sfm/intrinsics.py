@@ -70,8 +70,8 @@ class Undistortion:
     """Turns a self-calibrated model pinhole and writes the frames undistorted to fit it.
 
     ``pre`` is the preprocessed directory, ``out`` the directory that receives ``color/``,
-    ``enhanced/``, ``mask.png`` and ``camera.json`` (pinhole); ``prior`` the camera the stage
-    started from (its field-of-view guess)."""
+    ``enhanced/``, ``clipped/`` (if ``pre`` has it), ``mask.png`` and ``camera.json``
+    (pinhole); ``prior`` the camera the stage started from (its field-of-view guess)."""
 
     def __init__(self, pre: Path, out: Path, prior: Camera, names: list[str],
                  threads: int) -> None:
@@ -164,15 +164,20 @@ class Undistortion:
         new_mask = np.where((warped >= 255) & (geo.valid > 0), 255, 0).astype(np.uint8)
         outside = new_mask == 0
 
+        subs = [("color", cv2.IMREAD_COLOR), ("enhanced", cv2.IMREAD_GRAYSCALE)]
+        if (self.pre / "clipped").is_dir():  # the preprocess stage's clipped-pixel masks
+            (self.out / "clipped").mkdir(parents=True, exist_ok=True)
+            subs.append(("clipped", cv2.IMREAD_GRAYSCALE))
+
         def work(name: str) -> None:
-            for sub, flags in (("color", cv2.IMREAD_COLOR), ("enhanced", cv2.IMREAD_GRAYSCALE)):
+            for sub, flags in subs:
                 src = self.pre / sub / name
                 img = cv2.imread(str(src), flags)
                 if img is None:
-                    if sub == "color":
+                    if sub != "enhanced":
                         continue
                     raise StageError(f"{src}: cannot read image")
-                img = geo.remap(img)
+                img = geo.remap(img, cv2.INTER_NEAREST if sub == "clipped" else cv2.INTER_LINEAR)
                 img[outside] = 0
                 if not cv2.imwrite(str(self.out / sub / name), img, PNG_WRITE):
                     raise StageError(f"{self.out / sub / name}: cannot write PNG")
