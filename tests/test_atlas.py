@@ -386,10 +386,11 @@ def _overexposed(scene: dict[str, Any], root: Path, gain: float, every: int) -> 
 
 def _hue_error(scene: dict[str, Any], out: Path) -> float:
     """90th percentile of the |log(R/G)| error of the atlas against the true albedo (about its
-    median: the exposure model leaves a global gain), inner seen pixels."""
+    median: the exposure model leaves a global gain), inner seen pixels below 250."""
     proj = Projection.from_json(json.loads((out / "atlas.json").read_text()))
     atlas = cv2.imread(str(out / "atlas.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
     inner = cv2.erode((atlas[..., 3] > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    inner &= atlas[..., :3].max(axis=2) < 250  # not at the atlas image's own ceiling
     truth = true_albedo_atlas(scene, proj)
     err = np.log((atlas[..., 2] + 1) / (atlas[..., 1] + 1)) \
         - np.log((truth[..., 0] + 1) / (truth[..., 1] + 1))
@@ -411,7 +412,7 @@ def test_clipped_pixels_do_not_tint_the_atlas(full_scene: dict[str, Any],
     shutil.rmtree(pre / "clipped")
     naive = _hue_error(full_scene, build_atlas(full_scene["sfm"], pre, full_scene["mesh"],
                                                tmp_path / "b", cfg))
-    # measured: clean 0.019, masked 0.018, naive 0.136
+    # measured: clean 0.019, masked 0.017, naive 0.136
     assert masked < 2 * clean and naive > 3 * masked, (clean, masked, naive)
 
 
@@ -425,8 +426,8 @@ def test_wall_only_shown_clipped_is_left_unseen(full_scene: dict[str, Any],
     meta = json.loads((out / "atlas.json").read_text())
     full = json.loads((full_scene["out"] / "atlas.json").read_text())
     lost = full["coverage_percent"] - meta["coverage_percent"]
-    # measured: 41 % of the seen pixels clipped only, coverage 36.7 points lower, hue 0.022
-    assert meta["clipped_only_percent"] > 20 and lost > 18, (meta["clipped_only_percent"], lost)
+    # measured: 51 % of the seen pixels clipped only, coverage 48 points lower, hue 0.022
+    assert meta["clipped_only_percent"] > 25 and lost > 24, (meta["clipped_only_percent"], lost)
     assert _hue_error(full_scene, out) < 0.04
 
 

@@ -3,8 +3,9 @@
 First pass (survey): per frame, its depth map of the mesh, sharpness and coarse samples of the
 wall it sees, for the exposure model and the robust per-cell brightness. Second pass: every
 frame adds its exposure-corrected colours to the atlas pixels it sees, two-band blended, glints
-down-weighted and clipped pixels (the preprocess stage's ``clipped/`` masks) left out; pixels no
-frame shows free of glints are inpainted.
+down-weighted; pixels no frame shows free of glints are inpainted. Clipped pixels (the
+preprocess stage's ``clipped/`` masks) are censored: a sample whose footprint holds one counts
+for nothing, and wall that no frame shows free of them is left unseen.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ class PaintResult:
     contributing: int
     n_photometric_obs: int
     n_inpainted: int = 0
-    n_clipped_only: int = 0  # atlas pixels only clipped frame pixels showed (left unseen)
+    n_clipped_only: int = 0  # atlas pixels every frame showed clipped (left unseen)
 
 
 def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceRays,
@@ -71,36 +72,22 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
                              f"mask {mask.shape[1]}x{mask.shape[0]}")
         return img
 
-    def read_clipped(view: View) -> np.ndarray | None:
-        """The preprocess stage's mask of clipped pixels of ``view`` (bool), if it wrote one."""
-        import cv2
-
-        if view.clipped is None:
-            return None
-        clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
-        if clipped is None or clipped.shape != mask.shape:
-            raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
-                             f"{mask.shape[1]}x{mask.shape[0]}")
-        return clipped > 0
-
     def with_glint_weight(img: np.ndarray, view: View) -> np.ndarray:
-        """BGR + a 4th channel: the glint weight (255 everywhere when glint_rel is 0), 0 on
-        the pixels the preprocess stage found clipped (if it wrote their mask); the colour is
-        premultiplied by the weight, so that the pyramid's coarser levels average only the
-        usable pixels (see :func:`unpremultiply`)."""
+        """BGR + a 4th channel: the glint weight (255 everywhere when glint_rel is 0); with the
+        preprocess stage's mask of clipped pixels, a 5th: 255 where the pixel is not clipped
+        (a pyramid level's sample is then 255 only if no clipped pixel is under it)."""
         import cv2
 
         bgra = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
         if cfg.glint_rel > 0:
             bgra[..., 3] = glint_weight(img, mask, cfg.glint_rel)
-        clipped = read_clipped(view)
-        if clipped is not None:
-            bgra[..., 3][clipped] = 0
-        alpha = bgra[..., 3]
-        if alpha.min() < 255:
-            scaled = bgra[..., :3].astype(np.float32) * (alpha[..., None] / np.float32(255.0))
-            bgra[..., :3] = (scaled + np.float32(0.5)).astype(np.uint8)
-        return bgra
+        if view.clipped is None:
+            return bgra
+        clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
+        if clipped is None or clipped.shape != mask.shape:
+            raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
+                             f"{mask.shape[1]}x{mask.shape[0]}")
+        return np.dstack([bgra, np.where(clipped > 0, 0, 255).astype(np.uint8)])
 
     def footprint(i: int, depth: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray],
                                                      np.ndarray, np.ndarray] | None:
@@ -165,11 +152,11 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         if ok.any():
             oo = {k: a[ok] for k, a in o.items()}
             level = np.log2(np.maximum(view.K[0, 0] * cell_size[ok] / oo["dist"], 1.0))
-            bgr, clean = unpremultiply(sample_mip(full[:SURVEY_LEVELS + 1], oo["u"], oo["v"],
-                                                  level))
-            grey = (bgr[:, 0] + bgr[:, 1] + bgr[:, 2]) / 3
+            bgrw = sample_mip(full[:SURVEY_LEVELS + 1], oo["u"], oo["v"], level)
+            grey = (bgrw[:, 0] + bgrw[:, 1] + bgrw[:, 2]) / 3
             out.update(cell=cells[ok], obs=oo, logi=np.log(grey + 1.0),
-                       w=view_weights(oo, view, settings, 1.0, 1.0) * clean)
+                       w=view_weights(oo, view, settings, 1.0, 1.0) * bgrw[:, 3] / 255.0
+                       * unclipped(bgrw))
         return out
 
     budget = cfg.frame_cache_mb * 2**20
@@ -234,24 +221,22 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             pyr = blend_pyramid(pyramid(with_glint_weight(read(view), view),
                                         blend_levels(level, coarse)), level, coarse)
         wt = view_weights(oo, view, settings, float(sharp_rel[i]), dist_ref)
-        bgr, clean = unpremultiply(sample_mip(pyr, oo["u"], oo["v"], level))
+        bgrw = sample_mip(pyr, oo["u"], oo["v"], level)
         corr = photometry.correction(i, oo, view)
-        bgr *= corr[:, None]
-        clean = np.maximum(clean, np.float32(1e-3))
+        bgr = bgrw[:, :3] * corr[:, None]
+        usable = unclipped(bgrw)
+        clean = np.maximum(bgrw[:, 3] / np.float32(255.0), np.float32(1e-3)) * usable
         if ref_px is not None:
             ref = ref_px[cell_of[px]]
             known = np.isfinite(ref)
-            lum, _ = unpremultiply(sample_mip(pyr, oo["u"][known], oo["v"][known],
-                                              coarse[known]))
+            lum = sample_mip(pyr, oo["u"][known], oo["v"][known], coarse[known])
+            known[known] = unclipped(lum) > 0  # a clipped cell's brightness says nothing
+            lum = lum[unclipped(lum) > 0, :3]
             grey = (lum[:, 0] + lum[:, 1] + lum[:, 2]) / 3
             ratio = (grey + 1.0) * corr[known] / np.exp(ref[known])
             clean[known] *= brightness_outlier_weight(ratio, cfg.outlier_rel)
         wt = wt * clean
-        clipped = read_clipped(view)
-        unclipped = None if clipped is None else ~clipped[
-            np.clip(np.rint(oo["v"]).astype(np.intp), 0, mask.shape[0] - 1),
-            np.clip(np.rint(oo["u"]).astype(np.intp), 0, mask.shape[1] - 1)]
-        return px, wt, wt ** np.float32(cfg.detail_power), bgr, clean, unclipped
+        return px, wt, wt ** np.float32(cfg.detail_power), bgr, clean, usable > 0
 
     t0 = time.perf_counter()
     # rows: weight, weight·R, weight·G, weight·B (soft weights, then detail weights)
@@ -264,10 +249,10 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
     for res in ordered_map(colours, range(len(views)), cfg.threads):
         if res is None:
             continue
-        px, wt, wd, bgr, clean, unclipped = res
+        px, wt, wd, bgr, clean, usable = res
         contributing += 1
         n_views[px] += 1
-        shown_unclipped[px if unclipped is None else px[unclipped]] = True
+        shown_unclipped[px[usable]] = True
         best_clean[px] = np.maximum(best_clean[px], clean)
         for acc, ww in ((soft_acc, wt), (det_acc, wd)):
             acc[0, px] += ww
@@ -305,13 +290,14 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
                        n_clipped_only)
 
 
-def unpremultiply(bgrw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (float BGR) and weight (0..1) of samples of a premultiplied BGR + weight image:
-    a coarse level's colour is then the weighted mean of the usable pixels under it, not of
-    the glints and clipped pixels that its weight already counts less."""
-    alpha = bgrw[:, 3] / np.float32(255.0)
-    bgr = bgrw[:, :3] / np.maximum(alpha, np.float32(1.0 / 255.0))[:, None]
-    return np.minimum(bgr, np.float32(255.0)), alpha
+def unclipped(samples: np.ndarray) -> np.ndarray:
+    """1 where a sample (of :func:`with_glint_weight`'s image) has no clipped pixel under its
+    footprint (its 5th channel still 255), else 0; all 1 without that channel. A partly
+    clipped footprint is censored whole: its unclipped part is its darkest (vessels, say),
+    no fair sample of the wall's colour."""
+    if samples.shape[1] < 5:
+        return np.ones(len(samples), np.float32)
+    return (samples[:, 4] >= np.float32(254.5)).astype(np.float32)
 
 
 def inpaint(colour: np.ndarray, holes: np.ndarray, seen: np.ndarray, h: int, w: int) -> np.ndarray:
