@@ -708,6 +708,8 @@ def test_uncalibrated_distorted_scope_is_self_calibrated(tmp_path_factory, tmp_p
     und = frames_dir(out, pre)
     assert und == out / "undistorted"
     assert len(list((und / "color").glob("*.png"))) == truth.n_frames
+    # with the preprocess stage's clipped-pixel masks, which the atlas reads from there
+    assert len(list((und / "clipped").glob("*.png"))) == truth.n_frames
     assert not Camera.load(und / "camera.json").has_distortion
     assert q["registered"] >= 0.95 * truth.n_frames
     traj = evaluate_session(truth_dir, out)["trajectory"]
