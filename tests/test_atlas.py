@@ -23,7 +23,7 @@ from cystomap.atlas import AtlasConfig, Projection, SurfaceRays, build_atlas
 from cystomap.atlas.model import read_glb, uv_unwrap
 from cystomap.atlas.projection import pixel_to_point, point_to_pixel
 from cystomap.camera import Camera
-from cystomap.errors import InputError
+from cystomap.errors import InputError, StageError
 from cystomap.mesh import icosphere, volume_centroid, write_ply
 from cystomap.settings import from_mapping
 from cystomap.sfm.features import colmap_camera
@@ -418,17 +418,30 @@ def test_clipped_pixels_do_not_tint_the_atlas(full_scene: dict[str, Any],
 
 def test_wall_only_shown_clipped_is_left_unseen(full_scene: dict[str, Any],
                                                 tmp_path: Path) -> None:
-    """Every frame overexposed: the wall no frame shows unclipped is not painted (alpha 0,
-    counted in clipped_only_percent), and what is painted keeps its hue."""
+    """Every frame overexposed (18-99 % of each clipped, one 0 %): by default only the frames
+    under max_clipped are painted; with all of them, the wall no frame shows unclipped is not
+    painted (alpha 0, counted in clipped_only_percent) and what is painted keeps its hue; with
+    every pixel clipped the stage refuses, naming the setting, and writes nothing."""
     pre = _overexposed(full_scene, tmp_path, 3.0, 1)
-    cfg = AtlasConfig(width=256, height=128, model=False)
+    full = json.loads((full_scene["out"] / "atlas.json").read_text())
+    out = build_atlas(full_scene["sfm"], pre, full_scene["mesh"], tmp_path / "default",
+                      AtlasConfig(width=256, height=128, model=False))
+    meta = json.loads((out / "atlas.json").read_text())
+    assert meta["frames"]["overexposed"] == 25  # measured: 3 frames under 30 % clipped
+    assert _hue_error(full_scene, out) < 0.04
+    cfg = AtlasConfig(width=256, height=128, model=False, max_clipped=1.0)
     out = build_atlas(full_scene["sfm"], pre, full_scene["mesh"], tmp_path / "a", cfg)
     meta = json.loads((out / "atlas.json").read_text())
-    full = json.loads((full_scene["out"] / "atlas.json").read_text())
     lost = full["coverage_percent"] - meta["coverage_percent"]
     # measured: 51 % of the seen pixels clipped only, coverage 48 points lower, hue 0.022
     assert meta["clipped_only_percent"] > 25 and lost > 24, (meta["clipped_only_percent"], lost)
     assert _hue_error(full_scene, out) < 0.04
+    for path in (pre / "clipped").glob("*.png"):
+        cv2.imwrite(str(path), np.full(full_scene["mask"].shape, 255, np.uint8))
+    with pytest.raises(StageError, match="max_clipped"):
+        build_atlas(full_scene["sfm"], pre, full_scene["mesh"], tmp_path / "refused",
+                    AtlasConfig(width=256, height=128, model=False))
+    assert not (tmp_path / "refused").exists()
 
 
 def test_coverage_is_area_true_share_of_the_seen_wall(half_scene: dict[str, Any]) -> None:

@@ -51,6 +51,11 @@ class AtlasConfig:
     # Pixels that no frame shows free of glints (best view's glint/outlier weight below this)
     # are inpainted from their surroundings; 0 = off.
     inpaint_below: float = setting(0.3, "[0, 1)")
+    # Frames with more than this share of their field of view clipped (the preprocess stage's
+    # clipped/ masks: a colour channel at its ceiling) are overexposed and not painted: the
+    # little wall they show unclipped is their darkest, too biased a sample to fit their
+    # exposure by (the frames stage's max_saturated, per channel); 1 = paint them all.
+    max_clipped: float = setting(0.3, "(0, 1]")
     # Coarse cells (block × block atlas pixels) used to find which pixels a frame may see and
     # to estimate the exposure model.
     block: int = setting(8, "[2, 64]")

@@ -36,7 +36,7 @@ from cystomap.atlas.texture import (
     sharpness,
     view_weights,
 )
-from cystomap.errors import InputError
+from cystomap.errors import InputError, StageError
 from cystomap.parallel import ordered_map
 
 log = logging.getLogger(__name__)
@@ -288,6 +288,36 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             colour = inpaint(colour, glinted, seen, cfg.height, cfg.width)
     return PaintResult(colour, n_views, photometry, contributing, n_obs, n_inpainted,
                        n_clipped_only)
+
+
+def drop_overexposed(views: list[View], mask: np.ndarray, max_clipped: float) -> list[View]:
+    """``views`` without those whose clipped-pixel mask covers more than ``max_clipped`` of
+    the field of view ``mask``."""
+    import cv2
+
+    if max_clipped >= 1:
+        return views
+    inside = max(int(np.count_nonzero(mask)), 1)
+    kept, dropped = [], []
+    for view in views:
+        if view.clipped is not None:
+            clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
+            if clipped is None or clipped.shape != mask.shape:
+                raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
+                                 f"{mask.shape[1]}x{mask.shape[0]}")
+            if np.count_nonzero((clipped > 0) & mask) > max_clipped * inside:
+                dropped.append(view.name)
+                continue
+        kept.append(view)
+    if dropped:
+        log.info("%d of %d frames more than %.0f%% clipped (overexposed) are not painted: %s",
+                 len(dropped), len(views), 100 * max_clipped, ", ".join(dropped[:8])
+                 + (", ..." if len(dropped) > 8 else ""))
+    if not kept:
+        raise StageError(f"every one of the {len(views)} registered frames is more than "
+                         f"{100 * max_clipped:.0f}% clipped (atlas.max_clipped): nothing to "
+                         "paint the atlas from")
+    return kept
 
 
 def unclipped(samples: np.ndarray) -> np.ndarray:

@@ -41,7 +41,7 @@ import numpy as np
 from cystomap.anatomy import REGIONS, Anatomy, AnatomyHint, atlas_axes, estimate
 from cystomap.atlas.config import AtlasConfig
 from cystomap.atlas.model import uv_unwrap, write_glb, write_obj
-from cystomap.atlas.paint import paint
+from cystomap.atlas.paint import drop_overexposed, paint
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.atlas.regions import ORIENTATION_NOTE, region_overlay
 from cystomap.atlas.texture import (
@@ -96,7 +96,9 @@ def build_atlas(
     axes = atlas_axes(frame) if cfg.orientation == "anatomical" else np.eye(3)
     proj = Projection(cfg.projection, cfg.width, cfg.height, bary, axes)
     views, mask = load_views(sfm_dir, preprocessed_dir, cfg.max_views)
-    log.info("%d registered frames, mesh %d faces, atlas %s %dx%d", len(views), len(faces),
+    registered = len(views)
+    views = drop_overexposed(views, mask, cfg.max_clipped)
+    log.info("%d registered frames, mesh %d faces, atlas %s %dx%d", registered, len(faces),
              cfg.projection, cfg.width, cfg.height)
     wall = WallSamples(proj, rays, cfg.block)
     if wall.hit.mean() < 0.99:
@@ -145,7 +147,8 @@ def build_atlas(
                              "max_views": cfg.coverage_max_views},
         },
         "atlas_png": "RGBA; alpha 255 = seen, 0 = unseen (colour 0)",
-        "frames": {"registered": len(views), "contributing": int(result.contributing)},
+        "frames": {"registered": registered, "overexposed": registered - len(views),
+                   "contributing": int(result.contributing)},
         "glint_inpainted_percent": 100.0 * result.n_inpainted / max(int(seen.sum()), 1),
         "clipped_only_percent": 100.0 * result.n_clipped_only
         / max(int(seen.sum()) + result.n_clipped_only, 1),
