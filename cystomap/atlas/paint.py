@@ -81,13 +81,10 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
         bgra = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
         if cfg.glint_rel > 0:
             bgra[..., 3] = glint_weight(img, mask, cfg.glint_rel)
-        if view.clipped is None:
+        clipped = read_clipped(view, mask.shape)
+        if clipped is None:
             return bgra
-        clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
-        if clipped is None or clipped.shape != mask.shape:
-            raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
-                             f"{mask.shape[1]}x{mask.shape[0]}")
-        return np.dstack([bgra, np.where(clipped > 0, 0, 255).astype(np.uint8)])
+        return np.dstack([bgra, np.where(clipped, 0, 255).astype(np.uint8)])
 
     def footprint(i: int, depth: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray],
                                                      np.ndarray, np.ndarray] | None:
@@ -290,22 +287,30 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
                        n_clipped_only)
 
 
+def read_clipped(view: View, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The preprocess stage's mask of ``view``'s clipped pixels (bool), None without one."""
+    import cv2
+
+    if view.clipped is None:
+        return None
+    clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
+    if clipped is None or clipped.shape != shape:
+        raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
+                         f"{shape[1]}x{shape[0]}")
+    return clipped > 0
+
+
 def drop_overexposed(views: list[View], mask: np.ndarray, max_clipped: float) -> list[View]:
     """``views`` without those whose clipped-pixel mask covers more than ``max_clipped`` of
     the field of view ``mask``."""
-    import cv2
-
     if max_clipped >= 1:
         return views
     inside = max(int(np.count_nonzero(mask)), 1)
     kept, dropped = [], []
     for view in views:
-        if view.clipped is not None:
-            clipped = cv2.imread(str(view.clipped), cv2.IMREAD_GRAYSCALE)
-            if clipped is None or clipped.shape != mask.shape:
-                raise InputError(f"{view.clipped}: unreadable, or not of the frame's size "
-                                 f"{mask.shape[1]}x{mask.shape[0]}")
-            if np.count_nonzero((clipped > 0) & mask) > max_clipped * inside:
+        clipped = read_clipped(view, mask.shape)
+        if clipped is not None:
+            if np.count_nonzero(clipped & mask) > max_clipped * inside:
                 dropped.append(view.name)
                 continue
         kept.append(view)
