@@ -259,6 +259,18 @@ def test_single_session_without_3d_data_still_reports(tmp_path):
     assert "<td>—</td>" in text  # figures it could not read
 
 
+def test_overexposed_frames_left_out_of_the_atlas_are_reported(tmp_path):
+    s = write_session(tmp_path, "only", "2026-01-01", 0)
+    meta = json.loads((s.atlas / "atlas.json").read_text())
+    meta["frames"] = {"registered": 45, "overexposed": 3, "contributing": 42}
+    write_json(s.atlas / "atlas.json", meta)
+    text = build_report("p", [s], [], tmp_path / "r.html", SMALL).read_text()
+    assert "42; 3 overexposed frames" in text
+    plain = build_report("p", [write_session(tmp_path, "b", "2026-01-02", 1)], [],
+                         tmp_path / "b.html", SMALL).read_text()
+    assert "overexposed frames" not in plain
+
+
 def test_bad_inputs_are_named(tmp_path):
     s = write_session(tmp_path, "a", "2026-01-01", 0)
     with pytest.raises(InputError, match="no session"):

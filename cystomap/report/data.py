@@ -84,6 +84,7 @@ class SessionSummary:
     coverage_percent: float | None = None
     views_median: float | None = None
     contributing: int | None = None
+    overexposed: int | None = None  # registered frames too clipped to paint the atlas from
     watertight: bool | None = None
     metric: bool = False
     units: str = "model units"
@@ -200,6 +201,7 @@ def load_session(inputs: SessionInputs) -> SessionSummary:
     s.views_median = _num(cov.get("views_median"))
     fr = atlas.get("frames") if isinstance(atlas.get("frames"), dict) else {}
     s.contributing = _int(fr.get("contributing"))
+    s.overexposed = _int(fr.get("overexposed"))
     if isinstance(mesh.get("watertight"), bool):
         s.watertight = mesh["watertight"]
     regions = atlas.get("regions") if isinstance(atlas.get("regions"), dict) else {}
