@@ -44,12 +44,17 @@ def glint_mask(bgr: np.ndarray, mask: np.ndarray, z: float, dilate: float) -> np
     hit = np.zeros(n, bool)
     hit[np.unique(labels[core])] = True
     hit[0] = False
-    blobs = hit[labels]
+    return grown(hit[labels], dilate)
+
+
+def grown(blobs: np.ndarray, dilate: float) -> np.ndarray:
+    """``blobs`` (bool image) dilated by a disc of ``dilate`` times the image diagonal."""
+    h, w = blobs.shape
     r = round(dilate * math.hypot(w, h))
-    if r > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        blobs = cv2.dilate(blobs.view(np.uint8), kernel) > 0
-    return blobs
+    if r <= 0:
+        return blobs
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(blobs.view(np.uint8), kernel) > 0
 
 
 def clipped_mask(bgr: np.ndarray, mask: np.ndarray, level: int, dilate: float) -> np.ndarray:
@@ -60,12 +65,7 @@ def clipped_mask(bgr: np.ndarray, mask: np.ndarray, level: int, dilate: float) -
     A clipped channel is not the wall's colour: an overexposed frame with its red channel cut
     at 255 shows reddish mucosa paler and yellower, however its exposure is corrected later.
     """
-    h, w = mask.shape
     hit = (cv2.max(cv2.max(bgr[..., 0], bgr[..., 1]), bgr[..., 2]) >= level) & (mask > 0)
     if not hit.any():
         return hit
-    r = round(dilate * math.hypot(w, h))
-    if r > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        hit = cv2.dilate(hit.view(np.uint8), kernel) > 0
-    return hit & (mask > 0)
+    return grown(hit, dilate) & (mask > 0)

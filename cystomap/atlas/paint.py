@@ -227,8 +227,9 @@ def paint(views: list[View], mask: np.ndarray, wall: WallSamples, rays: SurfaceR
             ref = ref_px[cell_of[px]]
             known = np.isfinite(ref)
             lum = sample_mip(pyr, oo["u"][known], oo["v"][known], coarse[known])
-            known[known] = unclipped(lum) > 0  # a clipped cell's brightness says nothing
-            lum = lum[unclipped(lum) > 0, :3]
+            fair = unclipped(lum) > 0  # a clipped cell's brightness says nothing
+            known[known] = fair
+            lum = lum[fair, :3]
             grey = (lum[:, 0] + lum[:, 1] + lum[:, 2]) / 3
             ratio = (grey + 1.0) * corr[known] / np.exp(ref[known])
             clean[known] *= brightness_outlier_weight(ratio, cfg.outlier_rel)
