@@ -172,6 +172,35 @@ def _run(sessions: dict[str, Path], a: str, b: str, out: Path, **kw) -> tuple[Pa
 # --------------------------------------------------------------------------- units
 
 
+def test_mutual_matches_equal_brute_force_across_blocks() -> None:
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(70, 16))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = a[rng.integers(0, 70, 50)] + 0.3 * rng.normal(size=(50, 16))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    d = np.linalg.norm(a[:, None] - b[None], axis=2)
+    sa, sb = np.sort(d, axis=1), np.sort(d, axis=0)
+    ia, ib = d.argmin(axis=1), d.argmin(axis=0)
+    want = [(i, j) for i, j in enumerate(ia) if ib[j] == i and sa[i, 0] < 0.85 * sa[i, 1]
+            and sb[0, j] < 0.85 * sb[1, j]]
+    for block in (7, 64, 2048):  # blocks of rows, the last one short
+        i, j = mutual_matches(a, b, 0.85, block=block)
+        assert list(zip(i.tolist(), j.tolist(), strict=True)) == want
+    assert 10 < len(want) < 50
+
+
+def test_stable_argsort_is_numpys_stable_order() -> None:
+    from cystomap.compare.null import stable_argsort
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(0, 3, 5001).round(1).astype(np.float32)  # many ties
+    x[:20], x[20:30], x[30:40], x[40:50] = -0.0, 0.0, np.inf, -np.inf
+    assert np.array_equal(stable_argsort(x), np.argsort(x, kind="stable"))
+    assert np.array_equal(stable_argsort(x.astype(np.float64)),
+                          np.argsort(x.astype(np.float64), kind="stable"))
+    assert stable_argsort(np.zeros(0, np.float32)).size == 0
+
+
 def test_mutual_matches_and_msac_recover_a_similarity() -> None:
     rng = np.random.default_rng(0)
     desc = rng.normal(size=(300, 128))

@@ -128,6 +128,7 @@ from cystomap.compare.null import (
     split_at_saddles,
 )
 from cystomap.compare.null import changed_mask as changed_mask  # re-exported: stage, tests
+from cystomap.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -567,13 +568,20 @@ class _Checks:
         flat = labels.ravel()
         order = np.argsort(flat, kind="stable")
         bounds = np.searchsorted(flat[order], np.arange(1, n + 2))
-        out = np.zeros(n, bool)
-        for r in range(1, n + 1):
+        # a cluster smaller than the smallest change is not measured (its outline at half its
+        # peak lies inside it: never larger); the others are measured on the stage's threads
+        todo = [r for r in range(1, n + 1)
+                if bounds[r] > bounds[r - 1]
+                and self.flat_area[order[bounds[r - 1]:bounds[r]]].sum() >= self.min_area]
+
+        def passes(r: int) -> bool:
             px = order[bounds[r - 1]:bounds[r]]
-            # a cluster smaller than the smallest change is not measured (its outline at half
-            # its peak lies inside it: never larger)
-            if len(px) and self.flat_area[px].sum() >= self.min_area:
-                out[r - 1] = self.measure(px, labels, r, verify=False)[0] == ""
+            return self.measure(px, labels, r, verify=False)[0] == ""
+
+        out = np.zeros(n, bool)
+        threads = int(getattr(self.cfg, "threads", 1))
+        for r, ok in zip(todo, ordered_map(passes, todo, threads), strict=True):
+            out[r - 1] = ok
         return out
 
 

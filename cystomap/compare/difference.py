@@ -36,8 +36,10 @@ import numpy as np
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.grid import Grid, blur_mm, erode_mm, masked_blur_mm, wrap_pad
 from cystomap.compare.grid import wall_grid as wall_grid  # re-exported (stage, tests)
+from cystomap.compare.null import stable_argsort
 from cystomap.errors import InputError
 from cystomap.io.ply import read_mesh
+from cystomap.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +278,7 @@ def weighted_percentile(x: np.ndarray, weights: np.ndarray | None, q: np.ndarray
     """Percentiles ``q`` (0-100) of ``x`` weighted by ``weights`` (None: unweighted)."""
     if weights is None:
         return np.percentile(x, q)
-    order = np.argsort(x, kind="stable")
+    order = stable_argsort(x)
     xs, ws = x[order], np.asarray(weights, np.float64)[order]
     c = np.cumsum(ws) - 0.5 * ws
     return np.interp(np.asarray(q) / 100.0 * float(ws.sum()), c, xs)
@@ -408,11 +410,20 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
     t = cfg.blur_tolerance_mm
     blurs = [0.0] + ([t / 2, t] if t > 0 else [])
     sm = cfg.smooth_mm
+    # B's smoothed colours do not depend on the illumination field: once for both rounds
+    threads = int(getattr(cfg, "threads", 1))
+
+    def blurred(img: np.ndarray, mask: np.ndarray, sigmas: list[float]) -> list[np.ndarray]:
+        return list(ordered_map(lambda s: masked_blur_mm(img, mask, grid, s), sigmas, threads))
+
+    sb = blurred(b_rgb, joint, [math.hypot(sm, x) for x in blurs])
     for round_ in range(2):
         if cfg.illumination_mm > 0:
             use = joint & ~exclude
-            lb = masked_blur_mm(np.log(b_rgb + 8.0), use, grid, cfg.illumination_mm)
-            la = masked_blur_mm(np.log(a_q + 8.0), use, grid, cfg.illumination_mm)
+            lb, la = ordered_map(
+                lambda img, use=use: masked_blur_mm(np.log(img + 8.0), use, grid,
+                                                    cfg.illumination_mm),
+                (b_rgb, a_q), threads)
             a_n = np.clip((a_q + 8.0) * np.exp(lb - la) - 8.0, 0, 255)
         if neck_angle is not None:
             from cystomap.compare.neck import ring_ratio
@@ -421,8 +432,7 @@ def compute_difference(grid: Grid, b_rgb: np.ndarray, b_seen: np.ndarray, a_rgb:
                                                     neck_angle, 2 * sm)
             a_n = np.clip((a_n + 8.0) * factor - 8.0, 0, 255)
         delta = np.where(joint[..., None], b_rgb - a_n, 0.0).astype(np.float32)
-        sa = [masked_blur_mm(a_n, joint, grid, math.hypot(sm, x)) for x in blurs]
-        sb = [masked_blur_mm(b_rgb, joint, grid, math.hypot(sm, x)) for x in blurs]
+        sa = blurred(a_n, joint, [math.hypot(sm, x) for x in blurs])
         smooth = sb[0] - sa[0]
         smooth[~joint] = 0
         x = smooth[joint]

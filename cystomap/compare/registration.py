@@ -54,23 +54,24 @@ def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float,
     col_i = np.full(nb, -1, np.int64)
     for s in range(0, na, block):
         d = np.sqrt(np.maximum(2.0 - 2.0 * (a[s:s + block] @ b.T), 0.0))
-        rows = np.arange(len(d))
-        two = np.argpartition(d, 1, axis=1)[:, :2]
-        da, db = d[rows, two[:, 0]], d[rows, two[:, 1]]
-        best_ab[s:s + block] = np.where(db < da, two[:, 1], two[:, 0])
-        d1_ab[s:s + block] = np.minimum(da, db)
-        d2_ab[s:s + block] = np.maximum(da, db)
-        k = min(2, len(d))
-        part = np.argpartition(d, k - 1, axis=0)[:k] if len(d) > 1 else np.zeros((1, nb), int)
-        cand = d[part, np.arange(nb)[None, :]]  # (k, nb)
-        order = np.argsort(cand, axis=0)
-        cand = np.take_along_axis(cand, order, 0)
-        cand_i = np.take_along_axis(part, order, 0)[0] + s
-        new_best = cand[0] < col_d[0]
-        second = np.where(new_best, np.minimum(col_d[0], cand[1] if k > 1 else np.inf),
-                          np.minimum(col_d[1], cand[0]))
-        col_i = np.where(new_best, cand_i, col_i)
-        col_d = np.vstack([np.minimum(col_d[0], cand[0]), second])
+        rows, cols = np.arange(len(d)), np.arange(nb)
+        # the two smallest per row and per column: argmin, then the minimum without it
+        best = d.argmin(axis=1)
+        first = d[rows, best]
+        d[rows, best] = np.inf
+        best_ab[s:s + block] = best
+        d1_ab[s:s + block] = first
+        d2_ab[s:s + block] = d.min(axis=1)
+        d[rows, best] = first
+        best = d.argmin(axis=0)
+        first = d[best, cols]
+        d[best, cols] = np.inf
+        second = d.min(axis=0) if len(d) > 1 else np.full(nb, np.inf)
+        new_best = first < col_d[0]
+        second = np.where(new_best, np.minimum(col_d[0], second),
+                          np.minimum(col_d[1], first))
+        col_i = np.where(new_best, best + s, col_i)
+        col_d = np.vstack([np.minimum(col_d[0], first), second])
     i = np.arange(na)
     j = best_ab
     ok = (col_i[j] == i) & (d1_ab < ratio * d2_ab) & (col_d[0, j] < ratio * col_d[1, j])

@@ -57,6 +57,7 @@ import logging
 import math
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -147,6 +148,11 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
         return now
 
     t = t0
+    # the atlases load (PNG decoding, ray-casting scenes) while the descriptors are computed
+    loader = ThreadPoolExecutor(max_workers=1)
+    atlases = loader.submit(lambda: (SessionAtlas.load(a.atlas, a.mesh),
+                                     SessionAtlas.load(b.atlas, b.mesh)))
+    loader.shutdown(wait=False)
     fa = point_features(a.sfm, a.preprocessed, cfg.keypoint_size_mm, cfg.min_track_length,
                         cfg.max_reprojection_error_px, cfg.max_observations, cfg.threads,
                         cfg.max_points)
@@ -156,8 +162,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     t = lap("descriptors", t)
     reg = register(fa.xyz, fa.desc, fb.xyz, fb.desc, cfg)
     t = lap("registration", t)
-    atlas_a = SessionAtlas.load(a.atlas, a.mesh)
-    atlas_b = SessionAtlas.load(b.atlas, b.mesh)
+    atlas_a, atlas_b = atlases.result()
     t = lap("load_atlases", t)
     reg_json = reg.to_json()
     reg_json["descriptors"] = {
@@ -397,7 +402,8 @@ def _supported(grid: Any, pa: np.ndarray, reg: Registration,
     def dist(tree_pts: np.ndarray, query: np.ndarray, bound: float) -> np.ndarray:
         if len(tree_pts) == 0:
             return np.full(len(query), np.inf)
-        d, _ = cKDTree(tree_pts).query(query, distance_upper_bound=bound)
+        d, _ = cKDTree(tree_pts).query(query, distance_upper_bound=bound,
+                                       workers=max(1, cfg.threads))
         return d
 
     if cfg.support_mm > 0:
