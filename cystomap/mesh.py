@@ -16,7 +16,11 @@ function r(direction) about a centre c:
    whatever was seen; the atlas's coverage says what was really seen.
 4. c starts at the ellipsoid's centre and is replaced by the volume centroid of the fitted
    surface (``center_iterations`` times).
-5. The icosphere with its vertices pushed to r (closed, genus 0 by construction) is remeshed to
+5. Local relief (``relief``, off by default; :mod:`cystomap.mesh_relief`): where the points the
+   smooth fit rejected agree with each other (their median residual around a direction beyond
+   ``reject_k`` robust standard deviations, into the cavity), r follows them: a raised lesion
+   stands out of the wall instead of being smoothed into it.
+6. The icosphere with its vertices pushed to r (closed, genus 0 by construction) is remeshed to
    even triangles (pymeshlab isotropic remeshing) and kept only if it stays watertight and
    two-manifold.
 
@@ -54,6 +58,7 @@ from cystomap.geometry.trimesh import (
 )
 from cystomap.io.colmap import find_model_dir, load_reconstruction
 from cystomap.io.ply import read_mesh, write_ply
+from cystomap.mesh_relief import local_relief, relief_summary
 from cystomap.outputs import atomic_dir, software_versions, write_json
 from cystomap.settings import setting, validate
 
@@ -97,6 +102,12 @@ class MeshConfig:
     huber_k: float = setting(1.5, "> 0")
     # Points farther than this many robust standard deviations from the fit get no weight.
     reject_k: float = 4.0
+    # Local relief (cystomap/mesh_relief.py): where the well-triangulated SfM points the smooth
+    # fit rejected agree (their median residual around a direction beyond reject_k robust
+    # standard deviations, into the cavity), the surface follows them: raised lesions stand out
+    # of the wall. Off by default: on 36 FROC pairs it halved the centroid error of papillary
+    # lesions but lost two lesions beside the neck (README, "Raised lesions in the mesh").
+    relief: bool = setting(False)
     # Refits about the volume centroid of the previous fit.
     center_iterations: int = setting(2, ">= 0")
     # Isotropic remeshing to even triangles (pymeshlab); the edge length is this fraction of
@@ -126,7 +137,8 @@ def build_mesh(sfm_dir: Path, out_dir: Path, cfg: MeshConfig | None = None) -> P
     cloud = load_sparse_cloud(sfm_dir, cfg)
     log.info("%s: %d points read, %d kept after track/error filters", cloud.source,
              cloud.n_read, len(cloud.points))
-    fit = fit_closed_surface(cloud.points, cfg, hint_centre=cloud.camera_centre)
+    fit = fit_closed_surface(cloud.points, cfg, hint_centre=cloud.camera_centre,
+                             relief_points=cloud.well_triangulated)
     verts, faces = fit.vertices, fit.faces
     topo = topology(verts, faces)
     if not (topo["watertight"] and topo["manifold"]):
@@ -158,6 +170,7 @@ def build_mesh(sfm_dir: Path, out_dir: Path, cfg: MeshConfig | None = None) -> P
         "points_filtered": len(cloud.points),
         "points_fitted": fit.n_fitted,
         "points_inlier_share": fit.inlier_share,
+        "relief": fit.relief,
         "point_distance": _dist_stats(dist_all),
         "point_distance_filtered": _dist_stats(dist_used),
         "seconds": round(time.perf_counter() - t0, 2),
@@ -188,6 +201,7 @@ class SparseCloud:
     all_points: np.ndarray  # (M, 3) every point read
     camera_centre: np.ndarray | None  # mean of the registered camera centres, if known
     n_read: int
+    well_triangulated: np.ndarray  # (K, 3) the points the relief trusts (see load_sparse_cloud)
 
 
 def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
@@ -211,7 +225,12 @@ def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
                 keep &= ~(err > cfg.max_reprojection_error_px)
         centres = [img.projection_center() for img in rec.images.values() if img.has_pose]
         centre = np.mean(centres, axis=0) if centres else None
-        return SparseCloud(sfm_dir, xyz[keep], xyz, centre, len(xyz))
+        # the relief trusts points triangulated at least as well as the cloud's median point
+        # (reprojection error and track length): a cluster of floaters, triangulated from a few
+        # close views at a common wrong depth, agrees with itself as well as a tumour's top does
+        good = keep & (err <= np.median(err[keep])) & (track >= np.median(track[keep])) \
+            if keep.any() and not all(track == 0) else keep
+        return SparseCloud(sfm_dir, xyz[keep], xyz, centre, len(xyz), xyz[good])
     ply = sfm_dir / "points.ply"
     if not ply.is_file():
         raise InputError(f"{sfm_dir}: neither a COLMAP model nor points.ply found")
@@ -220,7 +239,7 @@ def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
     xyz = np.asarray(o3d.io.read_point_cloud(str(ply)).points, dtype=np.float64)
     if len(xyz) == 0:
         raise InputError(f"{ply}: no points (unreadable or empty point cloud)")
-    return SparseCloud(ply, xyz, xyz, None, len(xyz))
+    return SparseCloud(ply, xyz, xyz, None, len(xyz), xyz)
 
 
 # --------------------------------------------------------------------------- the radial fit
@@ -235,17 +254,21 @@ class SurfaceFit:
     n_fitted: int
     inlier_share: float
     remeshed: bool
+    relief: dict[str, Any]
 
 
 def fit_closed_surface(
-    points: np.ndarray, cfg: MeshConfig, hint_centre: np.ndarray | None = None
+    points: np.ndarray, cfg: MeshConfig, hint_centre: np.ndarray | None = None,
+    relief_points: np.ndarray | None = None,
 ) -> SurfaceFit:
-    """Closed star-shaped surface fitted to ``points`` (see the module docstring)."""
+    """Closed star-shaped surface fitted to ``points`` (see the module docstring); the local
+    relief from ``relief_points`` (default: ``points`` after the outlier removal)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1)]
     if len(points) < cfg.min_points:
         raise StageError(f"only {len(points)} usable SfM points (need {cfg.min_points})")
     points = remove_outliers(points, cfg)
+    unbinned = points
     centre = initial_centre(points, hint_centre)
     scale = float(np.median(np.linalg.norm(points - centre, axis=1)))
     if cfg.voxel_fraction > 0:
@@ -275,6 +298,17 @@ def fit_closed_surface(
             break
         centre = new_centre
     assert radii is not None and weights is not None
+    relief: dict[str, Any] = {"enabled": cfg.relief}
+    if cfg.relief:
+        # every point, not the voxels' means: a dome's top holds few
+        pts = unbinned if relief_points is None else np.asarray(relief_points, np.float64)
+        found = local_relief(pts, centre, sphere_v, sphere_f, radii, cfg.reject_k)
+        log.info(relief_summary(found, float(radii.mean())))
+        if np.all(radii + found.offset > 0):
+            radii = radii + found.offset
+            relief.update(found.info())
+        else:
+            log.warning("local relief left out: it would turn the surface inside out")
     verts = centre + radii[:, None] * sphere_v
     faces = sphere_f
     remeshed = False
@@ -292,7 +326,7 @@ def fit_closed_surface(
                 log.warning("isotropic remeshing broke the topology (%s); keeping the radial mesh",
                             topo)
     return SurfaceFit(verts, faces, volume_centroid(verts, faces), float(radii.mean()),
-                      len(points), float((weights > 0).mean()), remeshed)
+                      len(points), float((weights > 0).mean()), remeshed, relief)
 
 
 def remove_outliers(points: np.ndarray, cfg: MeshConfig) -> np.ndarray:
