@@ -228,8 +228,9 @@ def load_sparse_cloud(sfm_dir: Path, cfg: MeshConfig) -> SparseCloud:
         # the relief trusts points triangulated at least as well as the cloud's median point
         # (reprojection error and track length): a cluster of floaters, triangulated from a few
         # close views at a common wrong depth, agrees with itself as well as a tumour's top does
-        good = keep & (err <= np.median(err[keep])) & (track >= np.median(track[keep])) \
-            if keep.any() and not all(track == 0) else keep
+        good = keep.copy()
+        if keep.any() and not all(track == 0):
+            good &= (err <= np.median(err[keep])) & (track >= np.median(track[keep]))
         return SparseCloud(sfm_dir, xyz[keep], xyz, centre, len(xyz), xyz[good])
     ply = sfm_dir / "points.ply"
     if not ply.is_file():

@@ -28,11 +28,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from cystomap.geometry.sphere import direction_weights
+from cystomap.geometry.sphere import direction_weights, vertex_adjacency
+from cystomap.stats import weighted_median
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,7 @@ class Relief:
 
 def local_relief(points: np.ndarray, centre: np.ndarray, sphere_v: np.ndarray,
                  sphere_f: np.ndarray, radii: np.ndarray, reject_k: float,
-                 min_points: int = 5, inward_only: bool = True, passes: int = 3,
-                 ) -> Relief:
+                 min_points: int = 5, passes: int = 3) -> Relief:
     """The relief of ``points`` against the smooth surface ``centre + radii * sphere_v``."""
     from scipy.spatial import cKDTree
 
@@ -70,6 +69,7 @@ def local_relief(points: np.ndarray, centre: np.ndarray, sphere_v: np.ndarray,
     if len(res) < min_points or sigma <= 0:
         return Relief(offset, sigma, level, 0, 0.0, 0.0)
     # two vertex spacings of the icosphere, as a chord on the unit sphere
+    # (the median over two sides of every triangle: what the FROC figures were measured with)
     e = np.concatenate([sphere_f[:, [0, 1]], sphere_f[:, [1, 2]]])
     spacing = float(np.median(np.linalg.norm(sphere_v[e[:, 0]] - sphere_v[e[:, 1]], axis=1)))
     radius = 2.0 * spacing
@@ -79,14 +79,14 @@ def local_relief(points: np.ndarray, centre: np.ndarray, sphere_v: np.ndarray,
     median = np.zeros(len(sphere_v))
     for v in np.flatnonzero(has):
         median[v] = np.median(res[near[v]])
-    relief = (median < -level) if inward_only else (np.abs(median) > level)
+    relief = median < -level  # into the cavity only
     if not relief.any():
         return Relief(offset, sigma, level, 0, 0.0, 0.0)
     # the relief's neighbourhoods and one more around them follow the points
     grown = np.zeros(len(sphere_v), bool)
     for idx in cKDTree(sphere_v).query_ball_point(sphere_v[relief], radius):
         grown[idx] = True
-    adj = _adjacency(sphere_f, len(sphere_v))
+    adj = vertex_adjacency(sphere_f, len(sphere_v))
     deg = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)
     for _ in range(passes):
         # the height at each direction: the residuals' median weighted by a Gaussian of half
@@ -99,17 +99,13 @@ def local_relief(points: np.ndarray, centre: np.ndarray, sphere_v: np.ndarray,
             idx = np.asarray(near[v])
             g = np.exp(-0.5 * (np.linalg.norm(dirs[idx] - sphere_v[v], axis=1)
                                / (0.5 * spacing)) ** 2)
-            order = np.argsort(res[idx], kind="stable")
-            c = np.cumsum(g[order])
-            step[v] = res[idx][order][min(int(np.searchsorted(c, 0.5 * c[-1])), len(c) - 1)]
+            step[v] = weighted_median(res[idx], g)
         # directions of the relief without points of their own take their neighbours' mean
         # (a harmonic fill: no hole where a dome's top has few triangulated points)
         fill = grown & ~has
         for _ in range(100 if fill.any() else 0):
             step[fill] = (adj @ step)[fill] / deg[fill]
-        offset += step
-        if inward_only:
-            offset = np.minimum(offset, 0.0)
+        offset = np.minimum(offset + step, 0.0)
     moved = offset != 0
     return Relief(offset, sigma, level, int(moved.sum()),
                   float(max(0.0, -offset.min())), float(max(0.0, offset.max())))
@@ -123,12 +119,3 @@ def relief_summary(relief: Relief, mean_radius: float) -> str:
             f"{relief.sigma:.3g}); up to {relief.max_inward:.3g} into the cavity, "
             f"{relief.max_outward:.3g} outwards (mean radius {mean_radius:.3g})")
 
-
-def _adjacency(faces: np.ndarray, n: int) -> Any:
-    """Sparse (n, n) vertex adjacency of a triangle mesh."""
-    import scipy.sparse as sp
-
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    return sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                         shape=(n, n)).tocsr()

@@ -190,7 +190,7 @@ def test_mutual_matches_equal_brute_force_across_blocks() -> None:
 
 
 def test_stable_argsort_is_numpys_stable_order() -> None:
-    from cystomap.compare.null import stable_argsort
+    from cystomap.stats import stable_argsort
 
     rng = np.random.default_rng(2)
     x = rng.normal(0, 3, 5001).round(1).astype(np.float32)  # many ties

@@ -36,10 +36,10 @@ import numpy as np
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.grid import Grid, blur_mm, erode_mm, masked_blur_mm, wrap_pad
 from cystomap.compare.grid import wall_grid as wall_grid  # re-exported (stage, tests)
-from cystomap.compare.null import stable_argsort
 from cystomap.errors import InputError
 from cystomap.io.ply import read_mesh
 from cystomap.parallel import ordered_map
+from cystomap.stats import stable_argsort
 
 log = logging.getLogger(__name__)
 

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cystomap.compare.grid import Grid
-from cystomap.compare.null import weighted_median
+from cystomap.stats import weighted_median
 
 if TYPE_CHECKING:
     from cystomap.compare.difference import Difference

@@ -36,13 +36,24 @@ def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+def mesh_edges(f: np.ndarray) -> np.ndarray:
+    """(E, 2) unique undirected edges of the triangles ``f``, each as (smaller, larger)."""
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def vertex_adjacency(f: np.ndarray, n: int) -> sp.csr_matrix:
+    """Sparse (n, n) 0/1 adjacency of the vertices of the triangles ``f``."""
+    e = mesh_edges(f)
+    return sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                         shape=(n, n)).tocsr()
+
+
 def sphere_laplacian(v: np.ndarray, f: np.ndarray) -> sp.csr_matrix:
     """Uniform graph Laplacian scaled to approximate Laplace-Beltrami on the unit sphere."""
     n = len(v)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                        shape=(n, n)).tocsr()
+    e = mesh_edges(f)
+    adj = vertex_adjacency(f, n)
     deg = np.asarray(adj.sum(axis=1)).ravel()
     h = float(np.mean(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)))
     # On a regular triangular grid of spacing h: mean(neighbours) - f ≈ h²/4 · Δf.
