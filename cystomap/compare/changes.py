@@ -103,7 +103,8 @@ Measurement: each region's outline is where its significance exceeds half of its
 half-maximum contour lies on its edge whatever its contrast, so the size does not depend on
 the threshold. Area = sum of the wall areas of its pixels (not a pixel count),
 diameter = sqrt(4 A / π), centroid = area-weighted mean wall point, put back on the wall
-along its direction from the barycentre.
+along its direction from the barycentre (and, on a raised lesion, onto session B's 3-D points
+there by the compare stage: :mod:`cystomap.compare.relief`).
 """
 
 from __future__ import annotations
@@ -142,7 +143,7 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "inconsistency_a", "enclosed", "luminance_a", "luminance_b",
                   "point_distance_mm", "elongation", "observed_share", "delta_e",
-                  "local_delta_e", "expected_false", "mass")
+                  "local_delta_e", "expected_false", "mass", "relief_mm")
 
 
 @dataclass
@@ -175,6 +176,7 @@ class Region:
     local_delta_e: float = 0.0  # the same of the region's colour relative to its ring's
     expected_false: float = 0.0  # expected number of null regions at least this strong
     mass: float = 0.0  # excess significance mass above the candidate level (noise units · mm²)
+    relief_mm: float = 0.0  # the centroid's lift off the mesh onto B's points (a raised lesion)
 
     def row(self) -> dict[str, Any]:
         return {"id": self.id, "x": self.x, "y": self.y, "z": self.z,
@@ -192,7 +194,8 @@ class Region:
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
                 "observed_share": self.observed_share, "delta_e": self.delta_e,
                 "local_delta_e": self.local_delta_e,
-                "expected_false": self.expected_false, "mass": self.mass}
+                "expected_false": self.expected_false, "mass": self.mass,
+                "relief_mm": self.relief_mm}
 
 
 def elongation(points: np.ndarray, weights: np.ndarray) -> float:

@@ -93,6 +93,7 @@ from cystomap.compare.landmarks import LANDMARK_COLUMNS, map_landmarks
 from cystomap.compare.neck import neck_angles
 from cystomap.compare.null import changed_mask
 from cystomap.compare.registration import Registration, register
+from cystomap.compare.relief import raise_centroids
 from cystomap.errors import InputError
 from cystomap.images import imwrite_rgb
 from cystomap.outputs import atomic_dir, software_versions, write_json
@@ -198,6 +199,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
                 verify = _consistency_check(a, b, diff, atlas_a, atlas_b, a_points, reg, cfg)
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
+            regions = raise_centroids(regions, b.sfm, atlas_b.proj.barycentre, atlas_b.rays, cfg)
             t = lap("changes", t)
             summary.update(grid_info)
             found = find_back(regions, diff.grid, a_points, atlas_a, atlas_b, a, b,

@@ -177,6 +177,7 @@ CHANGE_TABLE = (
     ("id", "id", 0, ""),
     ("diameter_mm", "diameter", 1, "{u}"),
     ("area_mm2", "area", 1, "{u}²"),
+    ("relief_mm", "raised", 1, "{u}"),
     ("region", "region", 0, ""),
     ("clock", "clock (from the neck)", 1, ""),
     ("distance_from_neck_mm", "from the neck", 0, "{u}"),
