@@ -175,8 +175,9 @@ class CompareConfig:
     # about the centroid stand out of the mesh into the cavity by more than this many standard
     # errors of their median (the scatter measured on a ring of points about the region), the
     # centroid is moved onto them and changes.csv's relief_mm says by how much (0 = centroids
-    # stay on the mesh; see cystomap.compare.relief). 36 FROC pairs (seen): papillary lesions
-    # from 10 mm, centroid error median 4.90 -> 1.68 mm; nothing found or lost
+    # stay on the mesh; see cystomap.compare.relief). Papillary lesions from 10 mm, centroid
+    # error: 36 seen FROC pairs median 4.90 -> 1.68 mm; 5 fresh held-out pairs 4.3-5.7 ->
+    # 1.8-2.9 mm (README, "A raised change's centroid on the points"); nothing found or lost
     relief_z: float = setting(3.0, ">= 0")
     # experimental, off: the wall around the neck is filmed rarely and at grazing angles, on a
     # mesh several mm off; its noise level is measured ring by ring around the neck and its
