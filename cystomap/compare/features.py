@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,9 @@ class PointFeatures:
     n_obs: np.ndarray  # (N,) observations averaged
     n_points_model: int  # points in the model before filtering
     n_images: int  # registered images used
+    # (M, 3) every point that passed the track and error filters, before spreading and
+    # describing (the compare stage's raised-centroid test reads them: cystomap.compare.relief)
+    kept_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass
@@ -96,9 +99,10 @@ def _cell_keys(xyz: np.ndarray, cell: float) -> np.ndarray:
 def collect_observations(
     sfm_dir: Path, preprocessed_dir: Path, keypoint_size_mm: float, min_track_length: int,
     max_reprojection_error_px: float, max_observations: int, max_points: int = 0,
-) -> tuple[np.ndarray, np.ndarray, list[_Obs], int]:
+) -> tuple[np.ndarray, np.ndarray, list[_Obs], int, np.ndarray]:
     """Kept points (ids, xyz) and, per image, the observations to describe; at most
-    ``max_points`` (0 = all) spread evenly over the wall (:func:`spread_subset`)."""
+    ``max_points`` (0 = all) spread evenly over the wall (:func:`spread_subset`); the points
+    in the model and the xyz of every point that passed the filters (before spreading)."""
     rec = load_reconstruction(Path(sfm_dir))
     enhanced = frames_dir(sfm_dir, preprocessed_dir) / "enhanced"  # undistorted if self-calibrated
     if not enhanced.is_dir():
@@ -117,6 +121,7 @@ def collect_observations(
     xyz_a = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     keep_a = np.asarray(keep, dtype=bool)
     ids_a, xyz_a = ids_a[keep_a], xyz_a[keep_a]
+    kept_xyz = xyz_a
     if max_points > 0 and len(ids_a) > max_points:
         sub = spread_subset(xyz_a, np.asarray(tracks)[keep_a], max_points)
         log.info("%s: %d of %d points kept, spread over the wall", sfm_dir, len(sub), len(ids_a))
@@ -179,7 +184,7 @@ def collect_observations(
         m = img == i
         if m.any():
             obs.append(_Obs(name, np.column_stack([x[m], y[m]]), size[m], row[m]))
-    return ids_a, xyz_a, obs, n_model
+    return ids_a, xyz_a, obs, n_model, kept_xyz
 
 
 def _orientations(grey: np.ndarray, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -294,7 +299,7 @@ def point_features(
     import cv2
 
     enhanced = frames_dir(sfm_dir, preprocessed_dir) / "enhanced"  # undistorted if self-calibrated
-    ids, xyz, obs, n_model = collect_observations(
+    ids, xyz, obs, n_model, kept_xyz = collect_observations(
         sfm_dir, preprocessed_dir, keypoint_size_mm, min_track_length,
         max_reprojection_error_px, max_observations, max_points)
     acc = np.zeros((len(ids), 128), np.float64)
@@ -321,4 +326,5 @@ def point_features(
     desc = acc[ok] / np.maximum(np.linalg.norm(acc[ok], axis=1, keepdims=True), 1e-12)
     log.info("%s: %d of %d points described from %d frames (%.1f observations each)", sfm_dir,
              int(ok.sum()), n_model, len(obs), float(count[ok].mean()) if ok.any() else 0.0)
-    return PointFeatures(ids[ok], xyz[ok], desc.astype(np.float32), count[ok], n_model, len(obs))
+    return PointFeatures(ids[ok], xyz[ok], desc.astype(np.float32), count[ok], n_model, len(obs),
+                         kept_xyz)

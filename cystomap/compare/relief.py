@@ -19,10 +19,11 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from cystomap.atlas.projection import SurfaceRays
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,7 @@ class Lift:
 class PointHeights:
     """Session B's 3-D points as radial offsets from its mesh, seen from the barycentre."""
 
-    def __init__(self, points: np.ndarray, barycentre: np.ndarray, rays: object,
+    def __init__(self, points: np.ndarray, barycentre: np.ndarray, rays: SurfaceRays,
                  threads: int = 1) -> None:
         from scipy.spatial import cKDTree
 
@@ -53,7 +54,7 @@ class PointHeights:
         r = np.linalg.norm(v, axis=1)
         ok = r > 1e-9
         u = v[ok] / r[ok, None]
-        t, _ = rays.cast(self.barycentre, u)  # type: ignore[attr-defined]
+        t, _ = rays.cast(self.barycentre, u)
         hit = np.isfinite(t)
         self.dirs = u[hit]
         self.offset = (t - r[ok])[hit]  # > 0: the point lies inside the mesh (into the cavity)
@@ -72,7 +73,6 @@ class PointHeights:
         from the barycentre), for a region of equivalent radius ``radius_mm``."""
         d = np.asarray(direction, dtype=np.float64)
         ang = radius_mm / max(distance, 1e-9)  # the region's angular radius
-        idx = np.zeros(0, np.int64)
         frac = core
         while True:
             idx = self._within(d, frac * ang)
@@ -111,19 +111,14 @@ CORE_SHARE = 0.35
 MIN_POINTS = 5
 
 
-def raise_centroids(regions: list[Any], sfm_dir: Path, barycentre: np.ndarray, rays: object,
-                    cfg: Any) -> list[Any]:
+def raise_centroids(regions: list[Any], points: np.ndarray, barycentre: np.ndarray,
+                    rays: SurfaceRays, cfg: Any) -> list[Any]:
     """``regions`` (:class:`cystomap.compare.changes.Region`, session B's frame) with the
-    centroids of raised ones moved onto B's 3-D points (``relief_mm`` set); ``cfg``:
-    CompareConfig (``relief_z``, the point filters, ``threads``)."""
-    from cystomap.mesh import MeshConfig, load_sparse_cloud
-
+    centroids of raised ones moved onto B's 3-D ``points`` (those the compare stage's track and
+    error filters keep; ``relief_mm`` set); ``cfg``: CompareConfig (``relief_z``, ``threads``)."""
     if cfg.relief_z <= 0 or not regions:
         return regions
-    cloud = load_sparse_cloud(Path(sfm_dir), MeshConfig(
-        min_track_length=cfg.min_track_length,
-        max_reprojection_error_px=cfg.max_reprojection_error_px))
-    heights = PointHeights(cloud.points, barycentre, rays, cfg.threads)
+    heights = PointHeights(points, barycentre, rays, cfg.threads)
     out = []
     for g in regions:
         c = np.array([g.x, g.y, g.z], dtype=np.float64)

@@ -199,7 +199,8 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
                 verify = _consistency_check(a, b, diff, atlas_a, atlas_b, a_points, reg, cfg)
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
-            regions = raise_centroids(regions, b.sfm, atlas_b.proj.barycentre, atlas_b.rays, cfg)
+            regions = raise_centroids(regions, fb.kept_xyz, atlas_b.proj.barycentre,
+                                      atlas_b.rays, cfg)
             t = lap("changes", t)
             summary.update(grid_info)
             found = find_back(regions, diff.grid, a_points, atlas_a, atlas_b, a, b,
