@@ -468,19 +468,25 @@ def test_inconsistent_region_kept_only_where_a_agrees(sessions, tmp_path, monkey
     the lesions are kept while A's agree, and dropped as inconsistent when A's disagree too."""
     from cystomap.compare import consistency
 
-    real = consistency.inconsistency
+    real_sample, real_spread = consistency.sample, consistency.spread_ratio
     a_agrees = {"value": True}
+    in_b: dict[int, bool] = {}  # the samples' id -> taken in session B's frames
 
-    def fake(vs, rays, *args, **kw):
-        out = real(vs, rays, *args, **kw)
+    def sample(vs, *args, **kw):
+        out = real_sample(vs, *args, **kw)
+        in_b[id(out)] = sessions["s2"] in Path(vs.views[0].path).parents
+        return out
+
+    def spread(samples):
+        out = real_spread(samples)
         if out.get("inconsistency") is None:
             return out
-        in_b = sessions["s2"] in Path(vs.views[0].path).parents
-        if in_b or not a_agrees["value"]:
+        if in_b[id(samples)] or not a_agrees["value"]:
             out["inconsistency"] = 9.0
         return out
 
-    monkeypatch.setattr(consistency, "inconsistency", fake)
+    monkeypatch.setattr(consistency, "sample", sample)
+    monkeypatch.setattr(consistency, "spread_ratio", spread)
     out, _ = _run(sessions, "s1", "s2", tmp_path / "kept")
     table = pd.read_csv(out / "changes.csv")
     score = _score(sessions, "s2", out)["lesions"]

@@ -76,8 +76,15 @@ its ring's must change between the sessions by at least ``min_local_delta_e`` (C
 ``local_delta_e``; the ring is wall: the neck's cap, whose colours change from session to
 session, is left out of it). Photometric residue the illumination matching leaves
 (a gain or white balance varying smoothly over the wall) is significant by its size but
-shifts region and ring alike; a lesion changes the region only. (``min_delta_e``, a floor on
-the region's own mean colour change, moves with that residue and is off by default.)
+shifts region and ring alike; a lesion changes the region only. With
+``local_colour_in_frames`` (the default) this contrast is measured where it was filmed: in
+each of up to ``consistency_views`` frames of a session that see the region and its ring
+(:func:`cystomap.compare.consistency.contrasts`, exposure-normalised on the ring), the
+median over the frames, B's against A's at the same site (``frame_local_delta_e``); the
+atlases blend many frames, which softens a faint lesion's edge and keeps what each frame's
+exposure and white balance left, both of which the frames' own contrast does not see.
+(``min_delta_e``, a floor on the region's own mean colour change, moves with that residue and
+is off by default.)
 
 Gaps and unseen wall: a scan leaves strips of wall unfilmed between its sweeps, and the
 compared wall stops where either session's coverage does. Pieces of one change on both sides
@@ -143,7 +150,8 @@ CHANGE_COLUMNS = ("id", "x", "y", "z", "azimuth_deg", "elevation_deg", "area_mm2
                   "mean_significance", "atlas_col", "atlas_row", "pixels", "inconsistency",
                   "inconsistency_a", "enclosed", "luminance_a", "luminance_b",
                   "point_distance_mm", "elongation", "observed_share", "delta_e",
-                  "local_delta_e", "expected_false", "mass", "relief_mm")
+                  "local_delta_e", "frame_local_delta_e", "expected_false", "mass",
+                  "relief_mm")
 
 
 @dataclass
@@ -174,6 +182,8 @@ class Region:
     observed_share: float = 1.0  # share of the area both sessions saw (rest: bridged gap)
     delta_e: float = 0.0  # CIE76 colour difference of the region's mean colours, A vs B
     local_delta_e: float = 0.0  # the same of the region's colour relative to its ring's
+    # the same measured in the frames that saw the site (None: not measured)
+    frame_local_delta_e: float | None = None
     expected_false: float = 0.0  # expected number of null regions at least this strong
     mass: float = 0.0  # excess significance mass above the candidate level (noise units · mm²)
     relief_mm: float = 0.0  # the centroid's lift off the mesh onto B's points (a raised lesion)
@@ -194,6 +204,8 @@ class Region:
                 "point_distance_mm": self.point_distance_mm, "elongation": self.elongation,
                 "observed_share": self.observed_share, "delta_e": self.delta_e,
                 "local_delta_e": self.local_delta_e,
+                "frame_local_delta_e": ("" if self.frame_local_delta_e is None
+                                        else self.frame_local_delta_e),
                 "expected_false": self.expected_false, "mass": self.mass,
                 "relief_mm": self.relief_mm}
 
@@ -497,7 +509,7 @@ class _Checks:
             consistency = self.verify(pix, ring_pix)
             value = consistency.get("inconsistency")
             value_a = consistency.get("inconsistency_a")
-            if value is not None and value > cfg.max_inconsistency:
+            if cfg.max_inconsistency > 0 and value is not None and value > cfg.max_inconsistency:
                 if value_a is None or value_a > cfg.max_inconsistency:
                     log.debug("changes: region at %s: its colours disagree across session B's "
                               "frames (inconsistency %.2f > %.2f; A's: %s; not on the wall)",
@@ -539,11 +551,13 @@ class _Checks:
             log.debug("changes: region at %s: its mean colour changed by ΔE %.1f < %g, not "
                       "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
             return "faint", None
-        if local_de < cfg.min_local_delta_e:
+        frame_de = consistency.get("frame_local_delta_e")
+        if (frame_de if frame_de is not None else local_de) < cfg.min_local_delta_e:
             log.debug("changes: region at %s: relative to the wall around it its colour changed "
-                      "by ΔE %.1f < %g (its ring changed alike: photometric residue, not a "
-                      "change of the patch)", np.round(centroid, 1).tolist(), local_de,
-                      cfg.min_local_delta_e)
+                      "by ΔE %.1f < %g (%s; its ring changed alike: photometric residue, not a "
+                      "change of the patch)", np.round(centroid, 1).tolist(),
+                      frame_de if frame_de is not None else local_de, cfg.min_local_delta_e,
+                      "in the frames" if frame_de is not None else "on the atlases")
             return "not_local", None
         q = self.proj.axes @ d
         col, row = self.proj.point_to_pixel(centroid[None])
@@ -562,7 +576,7 @@ class _Checks:
             luminance_a=lum_rel_a,
             luminance_b=float(np.median(self.lum_b[pix])) / self.lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,
-            delta_e=delta_e, local_delta_e=local_de)
+            delta_e=delta_e, local_delta_e=local_de, frame_local_delta_e=frame_de)
 
     def reportable(self, labels: np.ndarray, n: int) -> np.ndarray:
         """(n,) bool: whether each cluster of ``labels`` (1 … n) would pass the checks as it is

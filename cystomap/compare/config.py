@@ -126,6 +126,15 @@ class CompareConfig:
     # pair's session A), lesions 4.7-13 (their raw delta_e overlapped the residue's at 3.8-4.3).
     # 3.5: what an untrained observer notices (the JND is 2.3). 0 = no check
     min_local_delta_e: float = setting(3.5, ">= 0")
+    # where the region's ΔE relative to its ring is measured for min_local_delta_e: true =
+    # in the frames that saw it (the region's mean colour minus its ring's in each of up to
+    # consistency_views frames of a session, exposure-normalised on the ring, the median over
+    # the frames; B's against A's at the same site; changes.csv: frame_local_delta_e), where
+    # neither the atlas's blending of many frames nor an exposure or white balance varying
+    # over the wall enters the contrast; false (or fewer than 3 such frames in a session) =
+    # on the atlases (local_delta_e). The null's share of noise clusters that pass the checks
+    # is measured on the atlases either way
+    local_colour_in_frames: bool = setting(True)
     # an optional floor on the region's own mean colour change (CIE76 ΔE*ab of B's mean vs
     # A's, illumination-matched; changes.csv: delta_e) whatever its ring does: it moves with
     # the residue (lesions and residue overlapped at 3.8-4.3 on the phantom pairs), so it is

@@ -51,6 +51,7 @@ class ViewSet:
         return cls(views, mask, {})
 
     def image(self, i: int) -> np.ndarray:
+        """Frame ``i`` (BGR, float32); kept in memory as read (8 bits: a quarter of the size)."""
         import cv2
 
         v = self.views[i]
@@ -58,8 +59,8 @@ class ViewSet:
             img = cv2.imread(str(v.path), cv2.IMREAD_COLOR)
             if img is None:
                 img = np.zeros((v.height, v.width, 3), np.uint8)
-            self.cache[v.name] = img.astype(np.float32)
-        return self.cache[v.name]
+            self.cache[v.name] = img
+        return self.cache[v.name].astype(np.float32)
 
 
 def _visible(vs: ViewSet, rays: SurfaceRays, pts: np.ndarray, normals: np.ndarray,
@@ -109,10 +110,26 @@ def _spread(col: np.ndarray, vis: np.ndarray) -> np.ndarray:
     return out
 
 
-def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
-                  region_nrm: np.ndarray, ring_pts: np.ndarray, ring_nrm: np.ndarray,
-                  max_views: int, seed: int = 0) -> dict[str, Any]:
-    """Spread of the region's colours across frames relative to its ring's."""
+@dataclass
+class Samples:
+    """A region's and its ring's points sampled in the frames of one session that see both
+    (exposure-normalised per frame on the ring)."""
+
+    colours: np.ndarray  # (views, n_region + n_ring, 3) RGB
+    visible: np.ndarray  # (views, n_region + n_ring)
+    n_region: int
+
+    @property
+    def views(self) -> int:
+        return len(self.colours)
+
+
+def sample(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray, region_nrm: np.ndarray,
+           ring_pts: np.ndarray, ring_nrm: np.ndarray, max_views: int, seed: int = 0,
+           ) -> Samples | int:
+    """The region's and ring's colours in up to ``max_views`` frames that see at least half
+    of the region and a third of the ring (evenly spread over the video: different
+    viewpoints); the number of such frames instead when there are fewer than ``MIN_VIEWS``."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -126,7 +143,7 @@ def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
     rp, rn = sub(region_pts, region_nrm)
     sp, sn = sub(ring_pts, ring_nrm)
     if len(rp) < 5 or len(sp) < 5:
-        return {"views": 0, "inconsistency": None}
+        return 0
     pts = np.vstack([rp, sp])
     nrm = np.vstack([rn, sn])
     vis, uu, vv = _visible(vs, rays, pts, nrm)
@@ -135,7 +152,7 @@ def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
     share_s = vis[:, nr:].mean(axis=1)
     good = np.flatnonzero((share_r >= 0.5) & (share_s >= 0.3))
     if len(good) < MIN_VIEWS:
-        return {"views": len(good), "inconsistency": None}
+        return len(good)
     if len(good) > max_views:  # evenly spread over the video (different viewpoints)
         good = good[np.unique(np.linspace(0, len(good) - 1, max_views).round().astype(int))]
     col = np.zeros((len(good), len(pts), 3), np.float32)
@@ -146,11 +163,51 @@ def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
         grey = s[nr:][ring].mean(axis=1)
         norm = float(np.median(grey)) if ring.any() else 1.0
         col[k] = s[:, ::-1] * (128.0 / max(norm, 1.0))  # RGB, exposure-normalised on the ring
-    v = vis[good]
-    spread = _spread(col, v)
+    return Samples(col, vis[good], nr)
+
+
+def spread_ratio(samples: Samples | int) -> dict[str, Any]:
+    """Spread of the region's colours across frames relative to its ring's."""
+    if isinstance(samples, int):
+        return {"views": samples, "inconsistency": None}
+    nr = samples.n_region
+    spread = _spread(samples.colours, samples.visible)
     r_sp = float(np.nanmedian(spread[:nr])) if np.isfinite(spread[:nr]).any() else np.nan
     s_sp = float(np.nanmedian(spread[nr:])) if np.isfinite(spread[nr:]).any() else np.nan
     if not (np.isfinite(r_sp) and np.isfinite(s_sp)):
-        return {"views": len(good), "inconsistency": None}
-    return {"views": len(good), "spread_region": r_sp, "spread_ring": s_sp,
+        return {"views": samples.views, "inconsistency": None}
+    return {"views": samples.views, "spread_region": r_sp, "spread_ring": s_sp,
             "inconsistency": r_sp / max(s_sp, SPREAD_FLOOR)}
+
+
+def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
+                  region_nrm: np.ndarray, ring_pts: np.ndarray, ring_nrm: np.ndarray,
+                  max_views: int, seed: int = 0) -> dict[str, Any]:
+    """Spread of the region's colours across frames relative to its ring's."""
+    return spread_ratio(sample(vs, rays, region_pts, region_nrm, ring_pts, ring_nrm,
+                               max_views, seed))
+
+
+def contrasts(samples: Samples) -> np.ndarray:
+    """(views, 3) per frame: CIE L*a*b* of the region's mean colour minus its ring's."""
+    import cv2
+
+    nr = samples.n_region
+    out = np.zeros((samples.views, 3), np.float64)
+    for k in range(samples.views):
+        vis = samples.visible[k]
+        means = np.stack([samples.colours[k, :nr][vis[:nr]].mean(axis=0),
+                          samples.colours[k, nr:][vis[nr:]].mean(axis=0)])
+        lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None],
+                           cv2.COLOR_RGB2Lab)[0]
+        out[k] = lab[0] - lab[1]
+    return out
+
+
+def frame_local_delta_e(b: Samples | int, a: Samples | int) -> float | None:
+    """CIE76 ΔE*ab between the region's contrast to its ring in session B's frames and in
+    A's (each the median over the frames; None when either session has too few frames)."""
+    if isinstance(b, int) or isinstance(a, int):
+        return None
+    return float(np.linalg.norm(np.median(contrasts(b), axis=0)
+                                - np.median(contrasts(a), axis=0)))

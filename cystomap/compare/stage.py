@@ -21,8 +21,10 @@ Outputs in ``out_dir`` (written atomically, all or nothing):
   (relative to the compared wall), ``point_distance_mm`` (to the nearest SfM points),
   ``elongation`` (length / width), ``observed_share`` (share of the area both sessions
   saw; below 1 when a strip of unseen wall through the region was bridged), ``delta_e``
-  (CIE76 ΔE*ab between A's and B's mean colours over the region) and ``local_delta_e`` (the
-  same of the region's mean colour relative to its ring's); then where it is in B's
+  (CIE76 ΔE*ab between A's and B's mean colours over the region), ``local_delta_e`` (the
+  same of the region's mean colour relative to its ring's, on the atlases) and
+  ``frame_local_delta_e`` (the same measured in the frames that saw the site, empty if not
+  measured; the one ``min_local_delta_e`` applies to when present); then where it is in B's
   anatomical frame (:mod:`cystomap.anatomy`, from B's atlas.json): ``region`` (standard
   bladder region), ``clock`` (o'clock seen from the neck, 12 = anterior) and
   ``distance_from_neck_mm`` (on the wall), ``straddles`` (the other regions its extent covers
@@ -195,7 +197,7 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
             a_points = grid_info.pop("a_points")
             t = lap("difference", t)
             verify = None
-            if cfg.max_inconsistency > 0:
+            if cfg.max_inconsistency > 0 or cfg.local_colour_in_frames:
                 verify = _consistency_check(a, b, diff, atlas_a, atlas_b, a_points, reg, cfg)
             summary["opening_directions"] = openings.tolist()
             regions, det_info = detect(diff, cfg, atlas_b.proj, atlas_b.rays, verify, openings)
@@ -354,7 +356,7 @@ def _consistency_check(a: SessionPaths, b: SessionPaths, diff: Any, atlas_a: Ses
     """``verify`` callback of :func:`detect`: photo-consistency in session B's frames and,
     where B's frames disagree, in A's frames at the same site (``a_points``: the grid's
     points warped into A)."""
-    from cystomap.compare.consistency import ViewSet, inconsistency
+    from cystomap.compare.consistency import ViewSet, frame_local_delta_e, sample, spread_ratio
 
     state: dict[str, Any] = {}
     pts = diff.grid.points.reshape(-1, 3)
@@ -377,16 +379,21 @@ def _consistency_check(a: SessionPaths, b: SessionPaths, diff: Any, atlas_a: Ses
         vs_b = views("B", b)
         if vs_b is None:
             return {}
-        out = inconsistency(vs_b, atlas_b.rays, pts[region], nrm[region], pts[ring], nrm[ring],
-                            cfg.consistency_views, cfg.seed)
+        in_b = sample(vs_b, atlas_b.rays, pts[region], nrm[region], pts[ring], nrm[ring],
+                      cfg.consistency_views, cfg.seed)
+        out = spread_ratio(in_b)
         value = out.get("inconsistency")
-        if value is None or value <= cfg.max_inconsistency or nrm_a is None:
+        disagree = cfg.max_inconsistency > 0 and value is not None and value > cfg.max_inconsistency
+        if nrm_a is None or not (disagree or cfg.local_colour_in_frames):
             return out
         vs_a = views("A", a)
         if vs_a is not None:
-            in_a = inconsistency(vs_a, atlas_a.rays, pts_a[region], nrm_a[region], pts_a[ring],
-                                 nrm_a[ring], cfg.consistency_views, cfg.seed)
-            out["inconsistency_a"] = in_a.get("inconsistency")
+            in_a = sample(vs_a, atlas_a.rays, pts_a[region], nrm_a[region], pts_a[ring],
+                          nrm_a[ring], cfg.consistency_views, cfg.seed)
+            if disagree:
+                out["inconsistency_a"] = spread_ratio(in_a).get("inconsistency")
+            if cfg.local_colour_in_frames:
+                out["frame_local_delta_e"] = frame_local_delta_e(in_b, in_a)
         return out
 
     return verify
