@@ -125,7 +125,7 @@ from typing import Any
 import numpy as np
 
 from cystomap.atlas.projection import Projection, SurfaceRays
-from cystomap.compare.difference import Difference, Grid, luminance
+from cystomap.compare.difference import Difference, Grid, lab, luminance
 from cystomap.compare.grid import cone_mask, within_cone
 from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
 from cystomap.compare.neck import chroma_band, level_around_neck
@@ -234,10 +234,8 @@ def mean_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.nda
 
 def _mean_lab(*sets: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """CIE L*a*b* of the weighted mean colour (RGB 0..255) of each (pixels, weights) set."""
-    import cv2
-
-    means = np.stack([(rgb * (w / max(float(w.sum()), 1e-12))[:, None]).sum(0) for rgb, w in sets])
-    return cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2Lab)[0]
+    return lab(np.stack([(rgb * (w / max(float(w.sum()), 1e-12))[:, None]).sum(0)
+                         for rgb, w in sets]))
 
 
 def local_colour_difference(a_rgb: np.ndarray, b_rgb: np.ndarray, weights: np.ndarray,
@@ -552,12 +550,12 @@ class _Checks:
                       "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
             return "faint", None
         frame_de = consistency.get("frame_local_delta_e")
-        if (frame_de if frame_de is not None else local_de) < cfg.min_local_delta_e:
+        decisive = local_de if frame_de is None else frame_de
+        if decisive < cfg.min_local_delta_e:
             log.debug("changes: region at %s: relative to the wall around it its colour changed "
                       "by ΔE %.1f < %g (%s; its ring changed alike: photometric residue, not a "
-                      "change of the patch)", np.round(centroid, 1).tolist(),
-                      frame_de if frame_de is not None else local_de, cfg.min_local_delta_e,
-                      "in the frames" if frame_de is not None else "on the atlases")
+                      "change of the patch)", np.round(centroid, 1).tolist(), decisive,
+                      cfg.min_local_delta_e, "on the atlases" if frame_de is None else "in the frames")
             return "not_local", None
         q = self.proj.axes @ d
         col, row = self.proj.point_to_pixel(centroid[None])

@@ -190,18 +190,13 @@ def inconsistency(vs: ViewSet, rays: SurfaceRays, region_pts: np.ndarray,
 
 def contrasts(samples: Samples) -> np.ndarray:
     """(views, 3) per frame: CIE L*a*b* of the region's mean colour minus its ring's."""
-    import cv2
+    from cystomap.compare.difference import lab
 
     nr = samples.n_region
-    out = np.zeros((samples.views, 3), np.float64)
-    for k in range(samples.views):
-        vis = samples.visible[k]
-        means = np.stack([samples.colours[k, :nr][vis[:nr]].mean(axis=0),
-                          samples.colours[k, nr:][vis[nr:]].mean(axis=0)])
-        lab = cv2.cvtColor(np.clip(means / 255.0, 0, 1).astype(np.float32)[None],
-                           cv2.COLOR_RGB2Lab)[0]
-        out[k] = lab[0] - lab[1]
-    return out
+    means = np.stack([[c[:nr][v[:nr]].mean(axis=0), c[nr:][v[nr:]].mean(axis=0)]
+                      for c, v in zip(samples.colours, samples.visible, strict=True)])
+    out = lab(means)  # (views, 2, 3)
+    return (out[:, 0] - out[:, 1]).astype(np.float64)
 
 
 def frame_local_delta_e(b: Samples | int, a: Samples | int) -> float | None:

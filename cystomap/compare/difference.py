@@ -210,6 +210,15 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb @ LUMA
 
 
+def lab(rgb: np.ndarray) -> np.ndarray:
+    """CIE L*a*b* (D65) of RGB colours (..., 3) on 0..255 (clipped) -> (..., 3)."""
+    import cv2
+
+    rgb = np.asarray(rgb, dtype=np.float32)
+    flat = np.clip(rgb.reshape(1, -1, 3) / 255.0, 0, 1)
+    return cv2.cvtColor(flat, cv2.COLOR_RGB2Lab).reshape(rgb.shape)
+
+
 def _grey(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(luminance(rgb)), 0, 255).astype(np.uint8)
 
