@@ -106,7 +106,7 @@ class MeshConfig:
     # fit rejected agree (their median residual around a direction beyond reject_k robust
     # standard deviations, into the cavity), the surface follows them: raised lesions stand out
     # of the wall. Off by default: on 36 FROC pairs it halved the centroid error of papillary
-    # lesions but lost two lesions beside the neck (README, "Raised lesions in the mesh").
+    # lesions but lost two lesions beside the neck (docs/measurements.md, "Raised lesions in the mesh").
     relief: bool = setting(False)
     # Refits about the volume centroid of the previous fit.
     center_iterations: int = setting(2, ">= 0")

@@ -83,7 +83,7 @@ class PreprocessConfig:
     # e.g. 0.375 turns 1280x720 into 480x270; max_image_size may lower it further. Every
     # later stage works at this size: 0.5 for 1080p recordings cut preprocess by 70 % and the
     # atlas by 64 % on a 60 s phantom recording with the same frames registered and an atlas
-    # as close to the truth (README, "1080p at half the working size").
+    # as close to the truth (docs/measurements.md, "1080p at half the working size").
     scale: float = setting(1.0, "(0, 4]")
     # Largest working size: the outputs are shrunk further (INTER_AREA) so that the longest
     # side of the lit field of view (the detected mask's bounding box; the frame's with mask
@@ -91,8 +91,8 @@ class PreprocessConfig:
     # used. 1280 is twice the size SfM detects its features at (sfm.max_image_size 640) and
     # the size of its second mapping: 1280x720 and smaller video and a scope's round image
     # in a 1080p frame keep their size, a 1080p frame filled by the image works at 1280x720
-    # (960 there: the model of scale 0.5 digit for digit, 4-9 s sooner on a 60 s recording; README,
-    # "The working size bounded by the lit field"). Not applied with mask "circle" and an
+    # (960 there: the model of scale 0.5 digit for digit, 4-9 s sooner on a 60 s recording;
+    # docs/measurements.md, "The working size bounded by the lit field"). Not applied with mask "circle" and an
     # explicit mask_radius (given in output pixels).
     max_image_size: int = setting(1280, ">= 0")
     # Pinhole camera of the undistorted images (principal point and aspect ratio always kept,
@@ -132,7 +132,7 @@ class PreprocessConfig:
     # moved the SfM of the entry frames on a glint test session (flagged, 7.4 mm off).
     # Off by default: on dev FROC pairs 300, 301, 306, 308 and no-change 1300 (same frames,
     # SfM and mesh; colour frames and atlases rebuilt) change detection found 18/24 lesions
-    # with it and 23/24 without, 0 false regions either way (README, "The lumen refit off").
+    # with it and 23/24 without, 0 false regions either way (docs/measurements.md, "The lumen refit off").
     level_exclude_dark: bool = False
     # Mean luminance (0-255) inside the mask after levelling: 0 = each frame keeps its own.
     level_mean: float = setting(0.0, "[0, 255]")

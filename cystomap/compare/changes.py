@@ -70,7 +70,7 @@ the colour is as quiet as on the rest of the wall), and beyond it the band whose
 the levelling's halo disturbs is tested on its colour alone; without it the angle is the
 fixed ``opening_deg``. The alternative ``neck_levelling`` (opt-in) scales the band's
 significance to the wall's noise level ring by ring instead: on held-out pairs it was no
-better (README, "The wall around the neck").
+better (docs/measurements.md, "The wall around the neck").
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
 ``local_delta_e``; the ring is wall: the neck's cap, whose colours change from session to

@@ -186,13 +186,13 @@ class CompareConfig:
     # centroid is moved onto them and changes.csv's relief_mm says by how much (0 = centroids
     # stay on the mesh; see cystomap.compare.relief). Papillary lesions from 10 mm, centroid
     # error: 36 seen FROC pairs median 4.90 -> 1.68 mm; 5 fresh held-out pairs 4.3-5.7 ->
-    # 1.8-2.9 mm (README, "A raised change's centroid on the points"); nothing found or lost
+    # 1.8-2.9 mm (docs/measurements.md, "A raised change's centroid on the points"); nothing found or lost
     relief_z: float = setting(3.0, ">= 0")
     # experimental, off: the wall around the neck is filmed rarely and at grazing angles, on a
     # mesh several mm off; its noise level is measured ring by ring around the neck and its
     # significance scaled to the rest of the wall's (see cystomap.compare.neck; with
     # opening_deg 0 it found small lesions near the neck on some held-out pairs but lost a
-    # 24.8 mm CIS and added a false region on others: README, "The wall around the neck")
+    # 24.8 mm CIS and added a false region on others: docs/measurements.md, "The wall around the neck")
     neck_levelling: bool = setting(False)
     # the brightness and colour of the wall around the neck, B against A, are matched ring by
     # ring around it (rings 2 x smooth_mm wide, out to 90 degrees; the wall-area weighted
@@ -200,16 +200,16 @@ class CompareConfig:
     # too wide for the steep shading of the funnel, and each session paints it from other
     # grazing views (see cystomap.compare.neck). Opt-in: on fresh family-C pairs 124-131
     # (2026-12-05) 19/24 lesions with it and without, 0 false regions either way: no gain
-    # shown (README, "The neck band's cause")
+    # shown (docs/measurements.md, "The neck band's cause")
     neck_ratio: bool = setting(False)
     # the wall around the neck, whose brightness the levelling's halo changes from frame to
-    # frame (README, "The neck band's cause"): ring by ring around the neck, the cap cut out
+    # frame (docs/measurements.md, "The neck band's cause"): ring by ring around the neck, the cap cut out
     # is the opening, out to where the colour (the part of the difference no brightness
     # change explains) is as quiet as on the rest of the wall; beyond it, where the
     # brightness part is still noisier than the rest's, only the colour is tested (a
     # lesion's hue or saturation). Replaces the fixed cone of opening_deg (see
     # cystomap.compare.neck.chroma_band). Held-out family-C pairs: from 5 mm 111 -> 113 of
-    # 121 lesions, from 10 mm 79 -> 80 of 80, false regions unchanged (README, "The neck
+    # 121 lesions, from 10 mm 79 -> 80 of 80, false regions unchanged (docs/measurements.md, "The neck
     # band tested on its colour")
     neck_chroma: bool = setting(True)
     # photo-consistency in session B's own frames (see cystomap.compare.consistency): a

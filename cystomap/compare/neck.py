@@ -24,7 +24,7 @@ nothing changes. This is the heteroscedastic form of the whitening the significa
 is: a change must stand out against the noise where it is.
 
 Opt-in (``compare.neck_levelling``, with ``opening_deg`` 0), because on held-out pairs it was
-no better than the fixed cone (README, "The wall around the neck"): on the family-C pairs it
+no better than the fixed cone (docs/measurements.md, "The wall around the neck"): on the family-C pairs it
 was developed on (111, 120, 123) it found the three small neck lesions the cone cut out, but on
 fresh ones it found none of the small ones either (5.2 mm, 3.6 mm; a 7.3 mm CIS only at rate
 1), lost a 24.8 mm CIS the cone had kept (its part outside 30°) and added a false region on a

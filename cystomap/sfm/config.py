@@ -109,7 +109,7 @@ class SfmConfig:
     # Opt-in: on held-out phantom seeds 10-12 it folded two of three mosaic (repeated texture)
     # sessions (the self-check failed the stage) and put glints:11 5.3 mm off (flagged), where
     # the incremental mapper kept every mosaic session within 0.06 mm; on the 3-minute 1080p
-    # recording it gave 0.106 mm against 0.197 (README, "Tracks merged up to 15 px")
+    # recording it gave 0.106 mm against 0.197 (docs/measurements.md, "Tracks merged up to 15 px")
     mapper: str = setting("incremental", choices=MAPPERS)
     # camera intrinsics in bundle adjustment: fixed, refine, or auto = fixed when
     # camera.json is calibrated, self-calibrated (focal length and distortion, see
@@ -157,7 +157,7 @@ class SfmConfig:
     # ones and the loop is never pulled closed; its global mapper merges up to 15 px. At 15 the
     # 3-minute 1080p recording's trajectory RMSE went 0.197 -> 0.113 mm and a development
     # session with a badly placed stretch (clean:8) 0.86 -> 0.12 mm, for 8-27 % more sfm
-    # time (README, "Tracks merged up to 15 px"); 4 = COLMAP's incremental default
+    # time (docs/measurements.md, "Tracks merged up to 15 px"); 4 = COLMAP's incremental default
     track_merge_error_px: float = setting(15.0, "> 0")
     # after mapping: drop observations above this error (px) and re-adjust; 0 = skip
     final_filter_error_px: float = setting(2.0, ">= 0")
@@ -238,7 +238,7 @@ class SfmConfig:
     # too. Off: where measured on the phantom (glints:4, glints:8, uncal:8, deformed:8) that
     # flag was false and the second mapping (160-250 CPU-s; 270 on a 60 s 1080p recording)
     # gave the same or a worse model; the flag stays a warning in quality.json, the log and
-    # the report (README, "Rotation flags no longer map again")
+    # the report (docs/measurements.md, "Rotation flags no longer map again")
     retry_on_rotation_flag: bool = setting(False)
 
     # --- metric scale ---

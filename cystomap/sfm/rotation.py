@@ -36,7 +36,7 @@ the group of neighbouring pairs whose mean discrepancy stands out most against i
 A self-calibrated session's pairs are measured through its estimated camera, not the prior's
 stored matrices (:func:`discrepancies`). The sign-flip null assumes independent pairs, but
 neighbouring loop pairs share frames and so errors: on fresh phantom seeds 8 and 9 four of ten
-sessions were flagged where the model is within 0.4° of the truth (README, "The second
+sessions were flagged where the model is within 0.4° of the truth (docs/measurements.md, "The second
 mapping on by default"); a null that keeps that dependence is still to be found.
 """
 
