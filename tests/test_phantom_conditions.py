@@ -353,6 +353,23 @@ def test_froc_counts_the_lesions_of_a_failed_session_as_missed():
     assert whole["no_change_pairs"] == 1
 
 
+def test_froc_summary_gives_the_issue_targets_from_5_mm():
+    """Recall from 5 and 10 mm, centroid errors over 2 mm and sizes within 20 %, of the
+    lesions found from 5 mm (a 4 mm lesion counts in neither)."""
+    from cystomap.bench.froc import summarise
+
+    base = {"pair": "p1", "rate": 0.1, "family": "A", "no_change": False, "false_positives": 0,
+            "kind": "cis"}
+    lesions = [(4.0, True, 9.0, 50.0), (6.0, True, 0.5, 10.0), (12.0, True, 3.0, -30.0),
+               (25.0, False, None, None)]
+    rows = [{**base, "lesion": k, "diameter_mm": d, "detected": found, "centroid_error_mm": c,
+             "size_error_pct": s} for k, (d, found, c, s) in enumerate(lesions)]
+    whole = {r["subset"]: r for r in summarise(rows)}["all"]
+    assert whole["recall_from_5mm"] == "2/3" and whole["recall_from_10mm"] == "1/2"
+    assert whole["centroid_over_2mm"] == "1/2" and whole["size_within_20pct"] == "1/2"
+    assert whole["centroid_error_mm_median"] == 1.75
+
+
 def test_froc_leaves_out_a_pair_the_phantom_cannot_draw():
     """Held-out seeds 118 and 119: papillary relief on a deformed wall is not star-shaped, and
     the phantom's InputError ended the whole benchmark run; such a pair is named and left out,
