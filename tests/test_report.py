@@ -250,6 +250,23 @@ def test_changes_view_falls_back_to_changes_png(tmp_path):
     assert "c0" in data["views"]
 
 
+def test_a_flagged_sfm_model_is_named_beside_its_comparison(tmp_path):
+    """compare.json's sfm_flags (a session's SfM self-check flagged its model) warn in the
+    comparison's section and in the summary; an unflagged study says nothing of it."""
+    sessions, comparisons = make_study(tmp_path, names=("a", "b"))
+    text = build_report("p", sessions, comparisons, tmp_path / "r.html", SMALL).read_text()
+    assert "flagged by its self-check" not in text
+    path = comparisons[0].compare / "compare.json"
+    summary = json.loads(path.read_text())
+    summary["sfm_flags"] = {"a": "rotation drift: 10 loop pairs linking f1..f3 to f9..f12"}
+    path.write_text(json.dumps(summary))
+    text = build_report("p", sessions, comparisons, tmp_path / "r2.html", SMALL).read_text()
+    section = text[text.index("id='compare-a-b'"):]
+    assert ("a's 3-D model was flagged by its self-check (rotation drift: 10 loop pairs linking "
+            "f1..f3 to f9..f12)") in section
+    assert "a → b: a's 3-D model was flagged by its self-check" in text
+
+
 def test_single_session_without_3d_data_still_reports(tmp_path):
     s = write_session(tmp_path, "only", "2026-01-01", 0)
     (s.atlas / "atlas.json").unlink()

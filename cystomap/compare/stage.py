@@ -98,7 +98,7 @@ from cystomap.compare.registration import Registration, register
 from cystomap.compare.relief import raise_centroids
 from cystomap.errors import InputError
 from cystomap.images import imwrite_rgb
-from cystomap.outputs import atomic_dir, software_versions, write_json
+from cystomap.outputs import atomic_dir, read_json_object, software_versions, write_json
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +176,9 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
         "keypoint_size_mm": cfg.keypoint_size_mm}
     summary: dict[str, Any] = {"session_a": _describe(a), "session_b": _describe(b),
                                "registered": reg.registered}
+    flags = sfm_flags(a, b)
+    if flags:
+        summary["sfm_flags"] = flags
     regions: list[Region] = []
     diff = None
     det_info: dict[str, Any] = {}
@@ -259,6 +262,26 @@ def _paths(p: Any) -> SessionPaths:
     if isinstance(p, str | Path):
         return SessionPaths.from_root(Path(p))
     raise InputError(f"expected SessionPaths or a session directory, got {p!r}")
+
+
+def sfm_flags(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
+    """Sessions whose SfM self-check flagged their model (sfm/quality.json ``consistency``:
+    drift, rotation drift, contradicted frame pairs), by "a"/"b", with the check's reason.
+    Such a model still reaches the comparison (the checks warn by default), and changes
+    measured against it may be false or misplaced: compare says so in its log and
+    compare.json, and the report beside the comparison."""
+    out = {}
+    for key, p in (("a", a), ("b", b)):
+        path = Path(p.sfm) / "quality.json"
+        if not path.is_file():
+            continue
+        c = read_json_object(path).get("consistency")
+        if isinstance(c, dict) and c.get("consistent") is False:
+            out[key] = str(c.get("reason") or "flagged by the self-check")
+            log.warning("compare: session %s's SfM model was flagged by its self-check (%s): "
+                        "changes measured against it may be false or misplaced", key.upper(),
+                        out[key])
+    return out
 
 
 def _describe(p: SessionPaths) -> dict[str, str]:

@@ -232,6 +232,12 @@ class ComparisonSummary:
     changes: list[dict[str, Any]] = field(default_factory=list)
     findback: list[dict[str, Any]] = field(default_factory=list)  # rows of findback.csv
     registration: dict[str, Any] = field(default_factory=dict)  # registration.json
+    sfm_flags: dict[str, str] = field(default_factory=dict)  # "a"/"b": the SfM self-check's reason
+
+    def flagged(self) -> list[tuple[str, str]]:
+        """(session name, reason) of the sessions whose SfM model its self-check flagged."""
+        names = {"a": self.a, "b": self.b}
+        return [(names[k], v) for k, v in sorted(self.sfm_flags.items()) if k in names]
 
     @property
     def key(self) -> str:
@@ -261,6 +267,9 @@ def load_comparison(inputs: ComparisonInputs) -> ComparisonSummary:
     c.scale = _num(tf.get("scale"))
     c.residual_mm = _find_residual(reg)
     c.compared_share = _find_compared(summary)
+    flags = summary.get("sfm_flags")
+    if isinstance(flags, dict):
+        c.sfm_flags = {str(k): str(v) for k, v in flags.items()}
     c.changes = read_changes(d / "changes.csv")
     if (d / "findback.csv").is_file():  # compare's find-back (absent in older outputs)
         c.findback = read_changes(d / "findback.csv")
