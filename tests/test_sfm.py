@@ -162,7 +162,18 @@ def test_densification_adds_long_tracks_without_losing_accuracy(small_session, t
     assert added["frames_read"] <= 2 * added["frames"], added
 
 
-def test_densification_is_the_same_on_any_number_of_threads(small_session, tmp_path):
+@pytest.fixture(scope="module")
+def undensified(small_session: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory,
+                ) -> tuple[Path, Path, np.ndarray]:
+    """The small session mapped without densification: its preprocessed frames, the model
+    and the field-of-view mask (densification is run on copies of the model)."""
+    _, pre = small_session
+    model = tmp_path_factory.mktemp("undensified") / "model"
+    run_sfm(pre, model, from_mapping(SfmConfig, {**FAST, "densify_corners": 0}, "sfm"))
+    return pre, model, cv2.imread(str(pre / "mask.png"), cv2.IMREAD_GRAYSCALE)
+
+
+def test_densification_is_the_same_on_any_number_of_threads(undensified):
     """The reference frames are shared out among ``num_threads`` threads, each with its own
     frames cache: the points added are those of one thread, in the same order (issue 16: on
     the 60 s 1080p recording 22.1 -> 16.8 s wall, the same 31447 points)."""
@@ -170,10 +181,7 @@ def test_densification_is_the_same_on_any_number_of_threads(small_session, tmp_p
 
     from cystomap.sfm.densify import densify
 
-    _, pre = small_session
-    model = tmp_path / "model"
-    run_sfm(pre, model, from_mapping(SfmConfig, {**FAST, "densify_corners": 0}, "sfm"))
-    mask = cv2.imread(str(pre / "mask.png"), cv2.IMREAD_GRAYSCALE)
+    pre, model, mask = undensified
     added = {}
     for threads in (1, 2, 3):
         rec = pycolmap.Reconstruction(str(model))
@@ -190,6 +198,47 @@ def test_densification_is_the_same_on_any_number_of_threads(small_session, tmp_p
         assert added[threads][:2] == added[1][:2]
         assert np.array_equal(added[threads][2], added[1][2])
         assert added[threads][3] == added[1][3]
+
+
+def test_densification_threshold_comes_from_the_videos_wrong_alignments(undensified):
+    """The ZNCC an alignment needs is the (1 - densify_null_rate) quantile of alignments
+    started a patch or two away from the right place: a stricter rate raises it, rate 0
+    leaves the fixed densify_max_zncc; right alignments pass it (on seven family-A/B FROC
+    sessions it came out 0.57-0.61; trajectory RMSE median 0.20 mm with a fixed 0.8, 0.13
+    with it)."""
+    import pycolmap
+
+    from cystomap.sfm.densify import densify
+
+    pre, model, mask = undensified
+    runs = {}
+    for rate in (0.0, 0.05, 0.01):
+        rec = pycolmap.Reconstruction(str(model))
+        cfg = from_mapping(SfmConfig, {"densify_corners": 200, "densify_null_rate": rate,
+                                       "densify_min_zncc": -1.0, "densify_max_zncc": 1.0
+                                       if rate else 0.8}, "sfm")
+        runs[rate] = densify(rec, pre / "enhanced", mask, cfg, 2)
+    fixed, loose, strict = runs[0.0], runs[0.05], runs[0.01]
+    assert fixed.min_zncc == 0.8 and fixed.null_alignments == 0
+    assert loose.null_alignments > 500, loose
+    assert -1.0 < loose.min_zncc < strict.min_zncc < 1.0, (loose, strict)
+    assert strict.aligned <= loose.aligned
+    # right alignments pass it: at least half as many accepted as with the fixed 0.8
+    assert loose.aligned > 0.5 * fixed.aligned, (loose, fixed)
+
+
+def test_zncc_threshold_quantile_floor_and_fallback():
+    from cystomap.sfm.densify import zncc_threshold
+
+    null = np.linspace(0.0, 1.0, 1001)
+    cfg = SfmConfig(densify_null_rate=0.05, densify_min_zncc=0.2, densify_max_zncc=1.0)
+    assert zncc_threshold(null, cfg) == pytest.approx(0.95)
+    assert zncc_threshold(null, SfmConfig(densify_null_rate=0.05, densify_min_zncc=0.97,
+                                          densify_max_zncc=1.0)) == 0.97
+    assert zncc_threshold(null, SfmConfig(densify_null_rate=0.05, densify_min_zncc=0.2,
+                                          densify_max_zncc=0.8)) == 0.8  # ceiling
+    assert zncc_threshold(null[:50], cfg) == 1.0  # 2.5 values above the quantile: ceiling
+    assert zncc_threshold(null, SfmConfig(densify_null_rate=0.0, densify_max_zncc=0.8)) == 0.8
 
 
 @pytest.mark.slow

@@ -213,16 +213,38 @@ class SfmConfig:
     densify_min_contrast: float = setting(2.0, ">= 0")
     # a corner's depth is the median depth of this many nearest model points in its frame
     densify_depth_neighbors: int = setting(5, ">= 1")
-    # an alignment counts when the patches correlate (ZNCC) at least this well and the point moved
-    # at most densify_max_shift_px from its predicted place
-    densify_min_zncc: float = setting(0.8, "[-1, 1]")
-    # largest shift (px) of an aligned corner from its predicted place (see densify_min_zncc)
+    # an alignment counts when the patches correlate (ZNCC) at least as well as all but
+    # densify_null_rate of wrong alignments do, in this video: the corners of
+    # densify_null_frames sampled frames aligned from starts one to two patch sides away from
+    # their predicted places (cystomap/sfm/densify.py, zncc_threshold), and the point moved at
+    # most densify_max_shift_px. Plain, low-contrast walls correlate less even where right: on
+    # seven family-A/B FROC sessions the former fixed 0.8 gave trajectory RMSE 0.08-0.24 mm
+    # (median 0.20), the null's thresholds (0.57-0.61) 0.09-0.22 (median 0.13)
+    # (docs/measurements.md, "Densification's ZNCC from the video's own wrong alignments").
+    # 0 = densify_max_zncc alone.
+    densify_null_rate: float = setting(0.05, "[0, 1)")
+    densify_null_frames: int = setting(24, ">= 1")
+    # floor under that threshold
+    densify_min_zncc: float = setting(0.5, "[-1, 1]")
+    # ceiling over it (the former fixed threshold; the threshold itself when densify_null_rate
+    # is 0): in motion blur wrong alignments correlate well too, the null's quantile rose to
+    # 0.90-0.93 on glints:10 and :12 (1280x720) and cost them 0.01-0.03 mm; the triangulation
+    # check (densify_max_reproj_error_px in densify_min_views frames) backs the ZNCC up
+    densify_max_zncc: float = setting(0.8, "[-1, 1]")
+    # largest shift (px) of an aligned corner from its predicted place (see densify_null_rate)
     densify_max_shift_px: float = setting(4.0, "> 0")
     # a new track needs this many frames (its own included) and must reproject within
     # densify_max_reproj_error_px in all of them after triangulation
     densify_min_views: int = setting(3, ">= 2")
     # largest reprojection error (px) of a new track in any of its frames after triangulation
     densify_max_reproj_error_px: float = setting(2.0, "> 0")
+    # SIFT points whose frames all lie within one densification window are dropped before the
+    # final adjustment where the corner tracks cover those frames (cystomap/sfm/densify.py,
+    # drop_short_sift); loop and long SIFT tracks stay. With the ZNCC from the null, on 12
+    # FROC sessions not used to choose either (5 family B, 3 A, 4 held-out C): within 0.15 mm
+    # 6 -> 10 of 12, median 0.17 -> 0.07 mm (docs/measurements.md, "Densification's ZNCC from
+    # the video's own wrong alignments")
+    densify_drop_short_sift: bool = True
 
     # --- failure ---
     # the stage fails when fewer frames than this, or than this share of the frames, register
@@ -278,4 +300,5 @@ class SfmConfig:
             "max_image_size 0 (full size) or >= 64": not 0 < self.max_image_size < 64,
             "sequential_max_gap >= sequential_overlap": self.sequential_max_gap >= self.sequential_overlap,
             "densify_patch_px odd": self.densify_patch_px % 2 == 1,
+            "densify_min_zncc <= densify_max_zncc": self.densify_min_zncc <= self.densify_max_zncc,
         })

@@ -227,7 +227,7 @@ def reconstruct(
     when that adds no such place (:func:`cystomap.sfm.pieces.join`).
     ``None`` when no model of at least ``min_model_frames`` was found."""
 
-    from cystomap.sfm.densify import densify
+    from cystomap.sfm.densify import densify, drop_short_sift
 
     refine = refine_intrinsics(cfg, calibrated)
     weak = weak or set()
@@ -268,7 +268,10 @@ def reconstruct(
             mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
         stride = key[1] - key[0] if len(key) > 1 else 1
         with _clock(cpu, "densify"):
+            sift = set(rec.points3D)
             dense = densify(rec, enhanced_dir, mask, cfg, stride, masks_dir).to_dict()
+            if cfg.densify_drop_short_sift and dense["points"]:
+                dense["sift_points_dropped"] = drop_short_sift(rec, sift, cfg, stride)
     with _clock(cpu, "final_ba"):
         final = final_adjustment(rec, cfg, refine)
     final["registered_after_keyframes"] = added
