@@ -435,3 +435,17 @@ def test_command_line(work: Path, truth: ft.FakeTruth, exact_sfm: Path) -> None:
     assert report["comparisons"]["s1_s2"]["lesions"]["n_matched"] == 1  # only L3 is < 0.6 mm off
     assert main(["--out", str(out), "--session", "s2", str(work / "nowhere")]) == 2
     assert main(["--out", str(out), "--session", "s2", str(truth.directory), "msh=x"]) == 2
+
+
+def test_seen_share_of_a_lesion_is_the_part_of_it_the_frames_saw(truth: ft.FakeTruth) -> None:
+    """The fake truth saw elevations below 30° outside the azimuth wedge 0°…60°: a lesion
+    there is seen whole, one inside the wedge not at all, one centred on the 30° line half."""
+    from cystomap.evaluate.lesions import seen_share
+
+    t = load_truth(truth.directory)
+    dist = 30.0
+    sites = ((-120.0, 0.0), (30.0, 0.0), (-90.0, 30.0), (-90.0, 60.0))
+    xyz = np.array([ft.CENTRE + dist * ft.direction(az, el) for az, el in sites])
+    share = seen_share(t, xyz, np.full(len(sites), 8.0))
+    assert share[0] == pytest.approx(1.0) and share[1] == pytest.approx(0.0)
+    assert share[2] == pytest.approx(0.5, abs=0.08) and share[3] == pytest.approx(0.0)

@@ -378,3 +378,19 @@ def test_froc_leaves_out_a_pair_the_phantom_cannot_draw():
 
     assert "not star-shaped" in (undrawable(random_pair(118)) or "")
     assert undrawable(random_pair(120)) is None
+
+
+def test_froc_summary_counts_apart_the_lesions_both_sessions_saw():
+    """A lesion on wall session A never filmed stays in "all" but not in "seen by both"."""
+    from cystomap.bench.froc import summarise
+
+    base = {"pair": "p1", "rate": 0.1, "family": "C", "no_change": False, "false_positives": 0,
+            "kind": "cis"}
+    rows = [{**base, "lesion": 1, "diameter_mm": 17.0, "detected": False, "centroid_error_mm": None,
+             "size_error_pct": None, "seen_a": 0.0, "seen_b": 1.0},
+            {**base, "lesion": 2, "diameter_mm": 8.0, "detected": True, "centroid_error_mm": 0.5,
+             "size_error_pct": 5.0, "seen_a": 0.9, "seen_b": 1.0}]
+    by = {r["subset"]: r for r in summarise(rows)}
+    assert by["all"]["recall_from_5mm"] == "1/2"
+    assert by["seen by both (>= 0.5 of the lesion)"]["recall_from_5mm"] == "1/1"
+    assert by["seen by both, held-out family C"]["recall_from_5mm"] == "1/1"

@@ -12,7 +12,7 @@ from cystomap.anatomy import Anatomy, covered_regions
 from cystomap.evaluate.anatomy import straddle_match
 from cystomap.evaluate.config import EvalConfig
 from cystomap.evaluate.trajectory import Sim3
-from cystomap.evaluate.truth import Truth, read_csv
+from cystomap.evaluate.truth import Truth, equirect_directions, read_csv
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,35 @@ def _average_precision(det: Any, matched: set[int], n_true: int) -> float | None
     cum_tp = np.cumsum(tp)
     precision = cum_tp / np.arange(1, len(tp) + 1)
     return float((precision * tp).sum() / n_true)
+
+
+def seen_share(truth: Truth, xyz: np.ndarray, diameter_mm: np.ndarray) -> np.ndarray:
+    """Share of each lesion's disc (centre ``xyz`` in the truth frame, ``diameter_mm``) that
+    the frames of ``truth``'s session saw: its ``seen`` mask over the cone about the
+    barycentre that the disc subtends, each pixel weighted by its wall area (cos elevation).
+
+    A lesion of session B scored against session A's truth (the phantom's sessions share the
+    world frame) says whether A filmed the site at all: a change on wall A never saw cannot be
+    told from the wall A would have shown there. Approximate by the deformation between the
+    sessions (a few mm at most) and at the poles of the grid."""
+    seen = truth.seen
+    h, w = seen.shape
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    weight = np.cos(np.radians(90.0 - (np.arange(h) + 0.5) * 180.0 / h))
+    weight = np.repeat(weight, w)
+    flat = seen.reshape(-1)
+    out = np.full(len(xyz), np.nan)
+    for i, (p, d) in enumerate(zip(np.asarray(xyz, np.float64).reshape(-1, 3),
+                                   np.asarray(diameter_mm, np.float64), strict=True)):
+        v = p - truth.barycentre
+        dist = float(np.linalg.norm(v))
+        if dist <= 0 or d <= 0:
+            continue
+        inside = dirs @ (v / dist) >= np.cos(np.arctan2(d / 2.0, dist))
+        total = float(weight[inside].sum())
+        if total > 0:
+            out[i] = float(weight[inside & flat].sum()) / total
+    return out
 
 
 def _plain(value: Any) -> Any:
