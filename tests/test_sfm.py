@@ -833,6 +833,26 @@ def test_piece_sharing_frames_is_joined_and_a_contradicting_join_undone(tmp_path
     assert undone.num_reg_images() == 8 and len(left) == 1 and fig["undone"] == 1, fig
 
 
+def test_frames_posed_from_too_few_points_are_taken_out(tmp_path):
+    """A frame left with a twentieth of the points the others see (a plain stretch of wall)
+    leaves the model with its reason; a model of evenly observed frames is untouched."""
+    from cystomap.sfm.mapping import drop_thin_frames
+
+    rec, _, names = _synthetic_model(tmp_path)
+    assert drop_thin_frames(rec, 0.1) == {}
+    by_name = {rec.image(i).name: i for i in rec.reg_image_ids()}
+    thin = rec.image(by_name[names[5]])
+    seen = [k for k, p in enumerate(thin.points2D) if p.has_point3D()]
+    median = float(np.median([rec.image(i).num_points3D for i in rec.reg_image_ids()]))
+    for k in seen[int(0.05 * median):]:
+        rec.delete_observation(thin.image_id, k)
+    out = drop_thin_frames(rec, 0.1)
+    assert list(out) == [names[5]] and out[names[5]].startswith("posed from too few points")
+    assert not rec.image(by_name[names[5]]).has_pose
+    assert rec.num_reg_images() == len(names) - 1
+    assert drop_thin_frames(rec, 0.0) == {}
+
+
 def test_pose_similarity_of_shared_frames():
     """The similarity from the shared frames' poses alone (little parallax: too few shared
     3-D points agree) maps the piece's cameras onto the model's."""

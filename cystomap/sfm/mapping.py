@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 
 from cystomap.sfm.config import SfmConfig
 
@@ -463,9 +464,37 @@ def final_adjustment(rec: Any, cfg: SfmConfig, refine: bool) -> dict[str, Any]:
         for frame_id in obs.filter_frames(0.1, 10.0, 1.0, 10):
             log.warning("frame %d has too few observations left; de-registered", frame_id)
             obs.deregister_frame(frame_id)
+    thin = drop_thin_frames(rec, cfg.min_frame_points_rel)
     rec.update_point_3d_errors()
     after = float(rec.compute_mean_reprojection_error())
     log.info("final adjustment: reprojection error %.3f -> %.3f px, %d observations dropped",
              before, after, dropped)
     return {"iterations": rounds, "observations_dropped": dropped,
-            "reprojection_error_before_px": before, "reprojection_error_after_px": after}
+            "reprojection_error_before_px": before, "reprojection_error_after_px": after,
+            "thin_frames": thin}
+
+
+def drop_thin_frames(rec: Any, share: float) -> dict[str, str]:
+    """Take out of ``rec`` every registered frame posed from fewer 3-D points than ``share``
+    times the median over its frames (``SfmConfig.min_frame_points_rel``); returns why, per
+    frame name (quality.json's ``dropped_frames``)."""
+    import pycolmap
+
+    ids = list(rec.reg_image_ids())
+    if share <= 0 or len(ids) < 3:
+        return {}
+    points = {i: int(rec.image(i).num_points3D) for i in ids}
+    median = float(np.median(list(points.values())))
+    thin = sorted((i for i in ids if points[i] < share * median), key=lambda i: rec.image(i).name)
+    if not thin or len(thin) > len(ids) // 2:
+        return {}
+    obs = pycolmap.ObservationManager(rec)
+    out = {}
+    for i in thin:
+        name = rec.image(i).name
+        out[name] = f"posed from too few points ({points[i]}, median {median:.0f})"
+        obs.deregister_frame(rec.image(i).frame_id)
+    log.warning("mapping: %d frame(s) posed from fewer than %g x the median %d points taken out "
+                "of the model (their poses are not reliable): %s", len(out), share, median,
+                ", ".join(out))
+    return out

@@ -107,17 +107,21 @@ def observation_depths(rec: Any) -> np.ndarray:
 
 def dropped_frames(
     names: list[str], features: Features, matches: MatchStats, models: list[list[str]],
-    min_keypoints: int,
+    min_keypoints: int, known: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """Why each frame that is not in the written model is missing."""
+    """Why each frame that is not in the written model is missing (``known``: reasons given
+    by the mapping itself, e.g. frames it took out)."""
     registered = set(models[0]) if models else set()
     where = {n: k for k, model in enumerate(models) for n in model}
+    known = known or {}
     out = {}
     for name in names:
         if name in registered:
             continue
         kp = features.num_keypoints.get(name, 0)
-        if name not in features.num_keypoints:
+        if name in known:
+            reason = known[name]
+        elif name not in features.num_keypoints:
             reason = "could not be read"
         elif kp < min_keypoints:
             reason = f"too few features ({kp})"
@@ -145,7 +149,8 @@ def summarise(
     reproj_world = None
     if reproj is not None and len(depths):
         reproj_world = reproj * float(np.median(depths)) / fx
-    dropped = dropped_frames(names, features, matches, models, min_keypoints)
+    thin = (extra.get("final_adjustment") or {}).get("thin_frames") or {}
+    dropped = dropped_frames(names, features, matches, models, min_keypoints, thin)
     reasons: dict[str, int] = {}
     for r in dropped.values():
         key = r.split(" (")[0]
