@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -414,7 +415,7 @@ def test_short_model_is_mapped_again_with_finer_features(small_session, tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sfm"]
 
 
-def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
+def test_retry_keeps_the_better_run_and_reports_both(tmp_path, caplog):
     """The retry's bookkeeping, with stand-in mappings: a failed or short first run is
     replaced by a better second; a worse second is dropped; both failing raise one error that
     names both, with the second's pieces beside the first's."""
@@ -460,6 +461,15 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path):
         assert q["registered"] == registered
         assert q.get("attempts", {}).get("kept") == kept, q
         assert sorted(p.name for p in root.iterdir()) == ["sfm"], results
+    # a short model handed on is named in the log; one that holds the share is not
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="cystomap.sfm.retry"):
+        retry.map_with_retry(fake({640: 60, 1280: 70}), tmp_path / "short" / "sfm", cfg, 0.5,
+                             failed_dir)
+        assert "holds only 70 of the 100 frames" in caplog.text
+        caplog.clear()
+        retry.map_with_retry(fake({640: 96}), tmp_path / "long" / "sfm", cfg, 0.5, failed_dir)
+        assert "holds only" not in caplog.text
     # black frames (too few features at any size) do not count against the share
     black = {"frames_in": 100, "registered": 93, "dropped_reasons": {"too few features": 5}}
     # a flag of the rotation check alone maps again only when asked (retry_on_rotation_flag)

@@ -127,6 +127,17 @@ def mappable(quality: dict[str, Any]) -> int:
     return int(quality.get("frames_in") or 0) - sum(int(reasons.get(r, 0)) for r in UNMAPPABLE)
 
 
+def warn_short(run: Run, share: float) -> None:
+    """Say in the log when the model handed on holds fewer than ``share`` of the frames a
+    mapping could place: the stage succeeds, but the wall only the others saw is missing."""
+    n = mappable(run.quality or {})
+    if share > 0 and n and run.registered < share * n:
+        log.warning("sfm: the model holds only %d of the %d frames with features (%.0f %%, under "
+                    "retry_registered_share %g): the wall that only the others saw is missing "
+                    "from the mesh and atlas; quality.json dropped_frames says why each is out",
+                    run.registered, n, 100.0 * run.registered / n, share)
+
+
 def better(new: Run, old: Run, share: float) -> bool:
     """Whether ``new`` should replace ``old`` (see the module: frames first, then the flags)."""
     if (new.error is None) != (old.error is None):
@@ -180,6 +191,7 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
                      "not mapped again", why)
         if first.error is not None:
             raise first.error
+        warn_short(first, cfg.retry_registered_share)
         return out_dir
     log.warning("sfm: %s; mapping again with features at %d px (were %d px)", why,
                 second_cfg.max_image_size, cfg.max_image_size)
@@ -208,6 +220,7 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
         if isinstance(q.get(key), dict):
             q[key] = {**q[key], "attempts_total": round(sum(r[key] for r in runs), 3)}
     write_json(out_dir / "quality.json", q)
+    warn_short(keep, cfg.retry_registered_share)
     kept, other = (runs[1], runs[0]) if keep is second else (runs[0], runs[1])
     log.info("sfm: kept the %s mapping (%d frames at %d px; the other: %s at %d px)",
              "second" if keep is second else "first", kept["registered"],
