@@ -153,8 +153,7 @@ def seen_share(truth: Truth, xyz: np.ndarray, diameter_mm: np.ndarray) -> np.nda
     seen = truth.seen
     h, w = seen.shape
     dirs = equirect_directions(h, w).reshape(-1, 3)
-    weight = np.cos(np.radians(90.0 - (np.arange(h) + 0.5) * 180.0 / h))
-    weight = np.repeat(weight, w)
+    weight = np.hypot(dirs[:, 0], dirs[:, 1])  # cos elevation: the wall area of each pixel
     flat = seen.reshape(-1)
     out = np.full(len(xyz), np.nan)
     for i, (p, d) in enumerate(zip(np.asarray(xyz, np.float64).reshape(-1, 3),

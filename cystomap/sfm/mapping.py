@@ -168,7 +168,6 @@ def weak_frames(verified: dict[tuple[int, int], int], n: int, cfg: SfmConfig) ->
     ``weak_frame_rel`` times the median of that figure over the frames within
     ``sequential_max_gap`` of it, in runs that a strong pair (``extend_min_inliers``) of
     other frames spans. Mapped last, so a blurred stretch cannot split the model."""
-    import numpy as np
 
     if cfg.weak_frame_rel <= 0 or n < 3:
         return set()
@@ -373,7 +372,6 @@ def register_rest(database: Path, rec: Any, names: list[str], opts: Any,
     tri = opts.get_triangulation()
     local_ba = opts.get_local_bundle_adjustment()
     refine = refine_names or set()
-    import numpy as np
 
     registered = set(rec.reg_image_ids())
     index = {ids[n]: k for k, n in enumerate(names) if n in ids}
@@ -486,7 +484,7 @@ def drop_thin_frames(rec: Any, share: float) -> dict[str, str]:
     points = {i: int(rec.image(i).num_points3D) for i in ids}
     median = float(np.median(list(points.values())))
     thin = sorted((i for i in ids if points[i] < share * median), key=lambda i: rec.image(i).name)
-    if not thin or len(thin) > len(ids) // 2:
+    if not thin:  # below a share (< 1) of the median: never more than half the frames
         return {}
     obs = pycolmap.ObservationManager(rec)
     out = {}
