@@ -627,3 +627,44 @@ def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
     chroma = _detect(sphere, a, b, a_seen, hit, openings=opening[None])
     assert len(chroma) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in chroma]
     assert np.linalg.norm([chroma[0].x, chroma[0].y, chroma[0].z] - centre) < 1.5
+
+
+def _verified(sphere, a, b, frame_de):
+    """detect() with a photo-consistency check whose frames measure ``frame_de`` for every
+    region (what ``consistency.frame_local_delta_e`` would return)."""
+    proj, rays, grid = sphere[:3]
+    cfg = CompareConfig()
+
+    def hint(sig, joint):
+        return changed_mask(sig, joint, grid.area, cfg.false_alarm_rate)
+
+    diff = compute_difference(grid, b.astype(np.float32), grid.hit, a.astype(np.float32),
+                              grid.hit, cfg, hint)
+    painted_b(diff, np.dstack([b, grid.hit]).astype(np.float32), cfg.smooth_mm)
+    return detect(diff, cfg, proj, rays, lambda pix, ring: {"frame_local_delta_e": frame_de})[0]
+
+
+def test_faint_patch_is_a_change_when_atlases_and_frames_both_show_it(sphere) -> None:
+    """A 20 mm flat patch whose colour relative to the wall around it changes by ΔE about 3.2
+    (like the phantom's faint CIS, which the old floor of 3.5 dropped): a change at the default
+    floor (the just-noticeable difference, 2.3) when the frames show it too; dropped when the
+    frames measure less than the floor, and a patch the atlases show at ΔE 1.6 stays dropped
+    whatever the frames say (the lesser of the two decides)."""
+    grid = sphere[2]
+    pts = np.nan_to_num(grid.points)
+    centre = _on_sphere(0.0, 0.0)
+    patch = grid.hit & (np.linalg.norm(pts - centre, axis=-1) < DIAMETER / 2)
+    rng = np.random.default_rng(3)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    for k, frame_de, found in ((0.12, 3.5, True), (0.12, 1.5, False), (0.06, 6.0, False)):
+        bk = b.copy()
+        bk[patch] += k * (LESION - WALL)
+        regions = _verified(sphere, a, bk, frame_de)
+        assert len(regions) == int(found), (k, frame_de, [(r.diameter_mm, r.local_delta_e)
+                                                          for r in regions])
+        if found:
+            g = regions[0]
+            assert np.linalg.norm([g.x, g.y, g.z] - centre) < 1.0
+            assert abs(g.diameter_mm - DIAMETER) < 0.1 * DIAMETER
+            assert 2.3 < g.local_delta_e < 3.5 and g.frame_local_delta_e == 3.5

@@ -80,9 +80,11 @@ shifts region and ring alike; a lesion changes the region only. With
 ``local_colour_in_frames`` (the default) this contrast is measured where it was filmed: in
 each of up to ``consistency_views`` frames of a session that see the region and its ring
 (:func:`cystomap.compare.consistency.contrasts`, exposure-normalised on the ring), the
-median over the frames, B's against A's at the same site (``frame_local_delta_e``); the
-atlases blend many frames, which softens a faint lesion's edge and keeps what each frame's
-exposure and white balance left, both of which the frames' own contrast does not see.
+median over the frames, B's against A's at the same site (``frame_local_delta_e``), and
+the lesser of it and the atlases' value decides: the atlases blend many frames, which
+softens a faint lesion's edge and keeps what each frame's exposure and white balance left;
+the few frames have sampling noise of their own; residue seldom fools both (docs/
+measurements.md, "The local colour check on both the atlases and the frames").
 (``min_delta_e``, a floor on the region's own mean colour change, moves with that residue and
 is off by default.)
 
@@ -550,12 +552,17 @@ class _Checks:
                       "visible", np.round(centroid, 1).tolist(), delta_e, cfg.min_delta_e)
             return "faint", None
         frame_de = consistency.get("frame_local_delta_e")
-        decisive = local_de if frame_de is None else frame_de
+        # both must show it: the atlases (a blend of many frames, with what each frame's
+        # exposure left on the wall) and the frames themselves (a few views, each with its
+        # own sampling noise) are each fooled by something the other is not
+        decisive = local_de if frame_de is None else min(local_de, frame_de)
         if decisive < cfg.min_local_delta_e:
-            log.debug("changes: region at %s: relative to the wall around it its colour changed "
-                      "by ΔE %.1f < %g (%s; its ring changed alike: photometric residue, not a "
-                      "change of the patch)", np.round(centroid, 1).tolist(), decisive,
-                      cfg.min_local_delta_e, "on the atlases" if frame_de is None else "in the frames")
+            log.debug("changes: region at %s (%.1f mm): relative to the wall around it its "
+                      "colour changed by ΔE %.1f < %g (%s; its ring changed alike: photometric "
+                      "residue, not a change of the patch)", np.round(centroid, 1).tolist(),
+                      math.sqrt(4 * area / math.pi), decisive, cfg.min_local_delta_e,
+                      "on the atlases" if frame_de is None
+                      else f"the lesser of {local_de:.1f} on the atlases and {frame_de:.1f} in the frames")
             return "not_local", None
         q = self.proj.axes @ d
         col, row = self.proj.point_to_pixel(centroid[None])

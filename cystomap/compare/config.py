@@ -118,22 +118,23 @@ class CompareConfig:
     # decision): the change between the sessions (A illumination-matched) of the region's mean
     # colour relative to its ring's (ring_mm of compared wall around it),
     # ‖(B_region − B_ring) − (A_region − A_ring)‖ in L*a*b* (CIE76 ΔE*ab; changes.csv:
-    # local_delta_e), must be at least this. Smooth photometric residue the illumination
-    # matching leaves (exposure, white balance varying over the wall), which the null passes by
-    # its size, shifts region and ring alike and cancels; a lesion changes its patch only.
-    # Measured (dev pairs 301, 306, 308, no-change 1300, the test pairs):
-    # false regions the null passed 0.3-2.6 (the largest a small texture artefact of the test
-    # pair's session A), lesions 4.7-13 (their raw delta_e overlapped the residue's at 3.8-4.3).
-    # 3.5: what an untrained observer notices (the JND is 2.3). 0 = no check
-    min_local_delta_e: float = setting(3.5, ">= 0")
+    # local_delta_e, frame_local_delta_e), must be at least this. Smooth photometric residue
+    # the illumination matching leaves (exposure, white balance varying over the wall), which
+    # the null passes by its size, shifts region and ring alike and cancels; a lesion changes
+    # its patch only. 2.3: the just-noticeable difference (was 3.5, what an untrained observer
+    # notices, measured on one of the two values only; it dropped flat CIS and scars of ΔE
+    # 2.6-3.4; docs/measurements.md, "The local colour check on both the atlases and the
+    # frames"). 0 = no check
+    min_local_delta_e: float = setting(2.3, ">= 0")
     # where the region's ΔE relative to its ring is measured for min_local_delta_e: true =
-    # in the frames that saw it (the region's mean colour minus its ring's in each of up to
-    # consistency_views frames of a session, exposure-normalised on the ring, the median over
-    # the frames; B's against A's at the same site; changes.csv: frame_local_delta_e), where
-    # neither the atlas's blending of many frames nor an exposure or white balance varying
-    # over the wall enters the contrast; false (or fewer than 3 such frames in a session) =
-    # on the atlases (local_delta_e). The null's share of noise clusters that pass the checks
-    # is measured on the atlases either way
+    # on the atlases (local_delta_e) and in the frames that saw it (the region's mean colour
+    # minus its ring's in each of up to consistency_views frames of a session,
+    # exposure-normalised on the ring, the median over the frames; B's against A's at the
+    # same site; changes.csv: frame_local_delta_e), the lesser of the two deciding: the
+    # atlases' blend of many frames keeps what each frame's exposure and white balance left,
+    # the few frames have sampling noise of their own, and residue seldom fools both; false
+    # (or fewer than 3 such frames in a session) = on the atlases only. The null's share of
+    # noise clusters that pass the checks is measured on the atlases either way
     local_colour_in_frames: bool = setting(True)
     # an optional floor on the region's own mean colour change (CIE76 ΔE*ab of B's mean vs
     # A's, illumination-matched; changes.csv: delta_e) whatever its ring does: it moves with
