@@ -265,6 +265,15 @@ def test_a_flagged_sfm_model_is_named_beside_its_comparison(tmp_path):
     assert ("a's 3-D model was flagged by its self-check (rotation drift: 10 loop pairs linking "
             "f1..f3 to f9..f12)") in section
     assert "a → b: a's 3-D model was flagged by its self-check" in text
+    # a model short of frames (compare.json sfm_short, from quality.json short_model)
+    assert "cannot be found" not in text
+    summary["sfm_short"] = {"b": "its model holds only 66 of the 117 frames with features (56 %)"}
+    path.write_text(json.dumps(summary))
+    text = build_report("p", sessions, comparisons, tmp_path / "r3.html", SMALL).read_text()
+    section = text[text.index("id='compare-a-b'"):]
+    assert ("b: its model holds only 66 of the 117 frames with features (56 %): changes on wall "
+            "only the missing frames filmed cannot be found") in section
+    assert "a → b: b: its model holds only 66" in text
 
 
 def test_single_session_without_3d_data_still_reports(tmp_path):

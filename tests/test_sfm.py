@@ -461,15 +461,22 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path, caplog):
         assert q["registered"] == registered
         assert q.get("attempts", {}).get("kept") == kept, q
         assert sorted(p.name for p in root.iterdir()) == ["sfm"], results
-    # a short model handed on is named in the log; one that holds the share is not
+    # a short model handed on is named in the log and in quality.json (short_model, which
+    # compare and the report read), after two mappings or one; one that holds the share is not
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="cystomap.sfm.retry"):
-        retry.map_with_retry(fake({640: 60, 1280: 70}), tmp_path / "short" / "sfm", cfg, 0.5,
-                             failed_dir)
-        assert "holds only 70 of the 100 frames" in caplog.text
-        caplog.clear()
-        retry.map_with_retry(fake({640: 96}), tmp_path / "long" / "sfm", cfg, 0.5, failed_dir)
+        for name, results, at_full in (("short", {640: 60, 1280: 70}, 0.5),
+                                       ("short1", {640: 70}, 1.0)):
+            out = retry.map_with_retry(fake(results), tmp_path / name / "sfm", cfg, at_full,
+                                       failed_dir)
+            assert "holds only 70 of the 100 frames" in caplog.text
+            short = json.loads((out / "quality.json").read_text())["short_model"]
+            assert short["registered"] == 70 and short["frames_with_features"] == 100
+            caplog.clear()
+        out = retry.map_with_retry(fake({640: 96}), tmp_path / "long" / "sfm", cfg, 0.5,
+                                   failed_dir)
         assert "holds only" not in caplog.text
+        assert "short_model" not in json.loads((out / "quality.json").read_text())
     # black frames (too few features at any size) do not count against the share
     black = {"frames_in": 100, "registered": 93, "dropped_reasons": {"too few features": 5}}
     # a flag of the rotation check alone maps again only when asked (retry_on_rotation_flag)

@@ -179,6 +179,9 @@ def compare_sessions(a: SessionPaths, b: SessionPaths, out_dir: Path,
     flags = sfm_flags(a, b)
     if flags:
         summary["sfm_flags"] = flags
+    short = sfm_short(a, b)
+    if short:
+        summary["sfm_short"] = short
     regions: list[Region] = []
     diff = None
     det_info: dict[str, Any] = {}
@@ -281,6 +284,26 @@ def sfm_flags(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
             log.warning("compare: session %s's SfM model was flagged by its self-check (%s): "
                         "changes measured against it may be false or misplaced", key.upper(),
                         out[key])
+    return out
+
+
+def sfm_short(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
+    """Sessions whose SfM model holds fewer than the stage's ``retry_registered_share`` of
+    their frames (sfm/quality.json ``short_model``), by "a"/"b", in words. The wall only the
+    missing frames filmed is absent from that session's mesh and atlas: a change there cannot
+    be found, and compare says so in its log and compare.json, and the report beside the
+    comparison."""
+    out = {}
+    for key, p in (("a", a), ("b", b)):
+        path = Path(p.sfm) / "quality.json"
+        if not path.is_file():
+            continue
+        s = read_json_object(path).get("short_model")
+        if isinstance(s, dict) and s.get("frames_with_features"):
+            n, r = int(s["frames_with_features"]), int(s.get("registered") or 0)
+            out[key] = f"its model holds only {r} of the {n} frames with features ({100 * r / n:.0f} %)"
+            log.warning("compare: session %s: %s: changes on wall that only the missing frames "
+                        "filmed cannot be found", key.upper(), out[key])
     return out
 
 

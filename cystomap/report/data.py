@@ -233,11 +233,17 @@ class ComparisonSummary:
     findback: list[dict[str, Any]] = field(default_factory=list)  # rows of findback.csv
     registration: dict[str, Any] = field(default_factory=dict)  # registration.json
     sfm_flags: dict[str, str] = field(default_factory=dict)  # "a"/"b": the SfM self-check's reason
+    sfm_short: dict[str, str] = field(default_factory=dict)  # "a"/"b": a model short of frames
 
     def flagged(self) -> list[tuple[str, str]]:
         """(session name, reason) of the sessions whose SfM model its self-check flagged."""
         names = {"a": self.a, "b": self.b}
         return [(names[k], v) for k, v in sorted(self.sfm_flags.items()) if k in names]
+
+    def short(self) -> list[tuple[str, str]]:
+        """(session name, in words) of the sessions whose SfM model holds too few frames."""
+        names = {"a": self.a, "b": self.b}
+        return [(names[k], v) for k, v in sorted(self.sfm_short.items()) if k in names]
 
     @property
     def key(self) -> str:
@@ -270,6 +276,9 @@ def load_comparison(inputs: ComparisonInputs) -> ComparisonSummary:
     flags = summary.get("sfm_flags")
     if isinstance(flags, dict):
         c.sfm_flags = {str(k): str(v) for k, v in flags.items()}
+    short = summary.get("sfm_short")
+    if isinstance(short, dict):
+        c.sfm_short = {str(k): str(v) for k, v in short.items()}
     c.changes = read_changes(d / "changes.csv")
     if (d / "findback.csv").is_file():  # compare's find-back (absent in older outputs)
         c.findback = read_changes(d / "findback.csv")

@@ -262,7 +262,9 @@ class SfmConfig:
     # mapping is mapped again with features at twice max_image_size (at most the lit field's
     # size) when they were detected below it. The better model is kept: the one that maps; of
     # two, the larger when the other holds less than this share of its frames, else the one
-    # the self-checks pass, then the larger. 0 = never
+    # the self-checks pass, then the larger. A model handed on that still holds fewer than
+    # this share is named in the log and quality.json (short_model), and compare and the
+    # report name its session beside the comparison. 0 = never
     retry_registered_share: float = setting(0.95, "[0, 1]")
     # a flag of the rotation self-check alone (rotation_check) calls for the second mapping
     # too. Off: where measured on the phantom (glints:4, glints:8, uncal:8, deformed:8) that

@@ -127,15 +127,20 @@ def mappable(quality: dict[str, Any]) -> int:
     return int(quality.get("frames_in") or 0) - sum(int(reasons.get(r, 0)) for r in UNMAPPABLE)
 
 
-def warn_short(run: Run, share: float) -> None:
-    """Say in the log when the model handed on holds fewer than ``share`` of the frames a
-    mapping could place: the stage succeeds, but the wall only the others saw is missing."""
+def short_model(run: Run, share: float) -> dict[str, Any] | None:
+    """quality.json's ``short_model`` when the model handed on holds fewer than ``share`` of
+    the frames a mapping could place (None otherwise), and a warning in the log: the stage
+    succeeds, but the wall only the other frames saw is missing from the mesh and atlas, and
+    compare and the report name the session."""
     n = mappable(run.quality or {})
-    if share > 0 and n and run.registered < share * n:
-        log.warning("sfm: the model holds only %d of the %d frames with features (%.0f %%, under "
-                    "retry_registered_share %g): the wall that only the others saw is missing "
-                    "from the mesh and atlas; quality.json dropped_frames says why each is out",
-                    run.registered, n, 100.0 * run.registered / n, share)
+    if not (share > 0 and n and run.registered < share * n):
+        return None
+    log.warning("sfm: the model holds only %d of the %d frames with features (%.0f %%, under "
+                "retry_registered_share %g): the wall that only the others saw is missing "
+                "from the mesh and atlas; quality.json dropped_frames says why each is out",
+                run.registered, n, 100.0 * run.registered / n, share)
+    return {"registered": run.registered, "frames_with_features": n,
+            "share": round(run.registered / n, 4), "retry_registered_share": share}
 
 
 def better(new: Run, old: Run, share: float) -> bool:
@@ -191,7 +196,10 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
                      "not mapped again", why)
         if first.error is not None:
             raise first.error
-        warn_short(first, cfg.retry_registered_share)
+        short = short_model(first, cfg.retry_registered_share)
+        if short is not None and (out_dir / "quality.json").is_file():
+            q = json.loads((out_dir / "quality.json").read_text())
+            write_json(out_dir / "quality.json", {**q, "short_model": short})
         return out_dir
     log.warning("sfm: %s; mapping again with features at %d px (were %d px)", why,
                 second_cfg.max_image_size, cfg.max_image_size)
@@ -219,8 +227,10 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
     for key in ("time_s", "cpu_s"):
         if isinstance(q.get(key), dict):
             q[key] = {**q[key], "attempts_total": round(sum(r[key] for r in runs), 3)}
+    short = short_model(keep, cfg.retry_registered_share)
+    if short is not None:
+        q["short_model"] = short
     write_json(out_dir / "quality.json", q)
-    warn_short(keep, cfg.retry_registered_share)
     kept, other = (runs[1], runs[0]) if keep is second else (runs[0], runs[1])
     log.info("sfm: kept the %s mapping (%d frames at %d px; the other: %s at %d px)",
              "second" if keep is second else "first", kept["registered"],
