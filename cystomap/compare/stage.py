@@ -267,6 +267,12 @@ def _paths(p: Any) -> SessionPaths:
     raise InputError(f"expected SessionPaths or a session directory, got {p!r}")
 
 
+def _quality(p: SessionPaths) -> dict[str, Any]:
+    """A session's sfm/quality.json ({} when it has none: an older or foreign model)."""
+    path = Path(p.sfm) / "quality.json"
+    return read_json_object(path) if path.is_file() else {}
+
+
 def sfm_flags(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
     """Sessions whose SfM self-check flagged their model (sfm/quality.json ``consistency``:
     drift, rotation drift, contradicted frame pairs), by "a"/"b", with the check's reason.
@@ -275,10 +281,7 @@ def sfm_flags(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
     compare.json, and the report beside the comparison."""
     out = {}
     for key, p in (("a", a), ("b", b)):
-        path = Path(p.sfm) / "quality.json"
-        if not path.is_file():
-            continue
-        c = read_json_object(path).get("consistency")
+        c = _quality(p).get("consistency")
         if isinstance(c, dict) and c.get("consistent") is False:
             out[key] = str(c.get("reason") or "flagged by the self-check")
             log.warning("compare: session %s's SfM model was flagged by its self-check (%s): "
@@ -295,10 +298,7 @@ def sfm_short(a: SessionPaths, b: SessionPaths) -> dict[str, str]:
     comparison."""
     out = {}
     for key, p in (("a", a), ("b", b)):
-        path = Path(p.sfm) / "quality.json"
-        if not path.is_file():
-            continue
-        s = read_json_object(path).get("short_model")
+        s = _quality(p).get("short_model")
         if isinstance(s, dict) and s.get("frames_with_features"):
             n, r = int(s["frames_with_features"]), int(s.get("registered") or 0)
             out[key] = f"its model holds only {r} of the {n} frames with features ({100 * r / n:.0f} %)"
