@@ -423,7 +423,7 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path, caplog):
 
     def fake(results: dict[int, object]):
         def attempt(out: Path, cfg: SfmConfig) -> dict:
-            got = results[cfg.max_image_size]
+            got = results.get((cfg.max_image_size, cfg.first_octave), results.get(cfg.max_image_size))
             if isinstance(got, tuple):  # (frames, flagged)
                 got, flagged = got
             else:
@@ -477,6 +477,22 @@ def test_retry_keeps_the_better_run_and_reports_both(tmp_path, caplog):
                                    failed_dir)
         assert "holds only" not in caplog.text
         assert "short_model" not in json.loads((out / "quality.json").read_text())
+    # at the lit field's full size, a short model is mapped again on the image doubled (one
+    # octave finer, guided matching) unless its features were detected so already; a model
+    # that is only flagged is not
+    out = retry.map_with_retry(fake({640: 60, (640, -1): 98}), tmp_path / "dbl" / "sfm", cfg,
+                               1.0, failed_dir)
+    q = json.loads((out / "quality.json").read_text())
+    assert q["registered"] == 98 and q["attempts"]["kept"] == 1
+    assert [r["image_doubled"] for r in q["attempts"]["runs"]] == [False, True]
+    doubled = {"frames_in": 100, "registered": 60, "doubled_frames": 100}
+    assert retry.finer(cfg, 1.0, retry.Run(640, doubled, None, tmp_path, 1.0, 1.0), 0.95) is None
+    flagged = {"frames_in": 100, "registered": 99, "consistency": {"consistent": False}}
+    assert retry.finer(cfg, 1.0, retry.Run(640, flagged, None, tmp_path, 1.0, 1.0), 0.95) is None
+    short = retry.finer(cfg, 1.0, retry.Run(640, {**doubled, "doubled_frames": 0}, None,
+                                            tmp_path, 1.0, 1.0), 0.95)
+    assert short is not None and short.first_octave == -1 and short.guided_matching
+    assert retry.finer(cfg, 0.5).max_image_size == 1280  # below full size: the size doubles
     # black frames (too few features at any size) do not count against the share
     black = {"frames_in": 100, "registered": 93, "dropped_reasons": {"too few features": 5}}
     # a flag of the rotation check alone maps again only when asked (retry_on_rotation_flag)

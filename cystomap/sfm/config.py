@@ -260,7 +260,9 @@ class SfmConfig:
     min_registered_fraction: float = setting(0.3, "[0, 1]")
     # a model holding fewer than this share of the frames, one a self-check flags, or a failed
     # mapping is mapped again with features at twice max_image_size (at most the lit field's
-    # size) when they were detected below it. The better model is kept: the one that maps; of
+    # size) when they were detected below it; at full size already, a short model or a failed
+    # mapping is mapped again on the image doubled (first_octave one finer, guided matching)
+    # unless plain_keypoints_share detected it so. The better model is kept: the one that maps; of
     # two, the larger when the other holds less than this share of its frames, else the one
     # the self-checks pass, then the larger. A model handed on that still holds fewer than
     # this share is named in the log and quality.json (short_model), and compare and the

@@ -15,7 +15,12 @@ on the phantom those flags were false and the second mapping did not help), or t
 fails, and the features were detected below the lit
 field's size, the session is mapped again beside the output (``<out>.retry``) with
 ``max_image_size`` doubled; the better model is kept (:func:`better`) and quality.json's
-``attempts`` lists both runs with their size, frames, flags and seconds.
+``attempts`` lists both runs with their size, frames, flags and seconds. When the features
+were at the lit field's full size already (640x360 video), a model short of frames or a
+failed mapping is mapped again on the image doubled instead (``first_octave`` one finer,
+guided matching), unless the plain-frame rule detected it so already: family-B phantom
+sessions at 640x360 split into pieces of 66, 37 and 12 frames that way and map whole (log:
+"Short models mapped again on the image doubled").
 
 Which model is better: a model that maps is better than a failed one; of two that map, one
 holding fewer than ``retry_registered_share`` of the other's frames loses them for certain,
@@ -58,6 +63,7 @@ class Run:
     failed_dir: Path
     time_s: float
     cpu_s: float
+    doubled: bool = False  # features detected on the image doubled (SfmConfig.first_octave -1)
 
     @property
     def registered(self) -> int:
@@ -70,12 +76,18 @@ class Run:
         return int(sizes[0]) if sizes else 0
 
     @property
+    def features(self) -> str:
+        """The features' size in words (for the log)."""
+        return f"{self.max_image_size} px" + (" on the image doubled" if self.doubled else "")
+
+    @property
     def flagged(self) -> bool:
         c = (self.quality or {}).get("consistency")
         return isinstance(c, dict) and c.get("consistent") is False
 
     def record(self) -> dict[str, Any]:
-        return {"max_image_size": self.max_image_size, "registered": self.registered,
+        return {"max_image_size": self.max_image_size, "image_doubled": self.doubled,
+                "registered": self.registered,
                 "flagged": self.flagged, "failed": self.error is not None,
                 "time_s": round(self.time_s, 3), "cpu_s": round(self.cpu_s, 3)}
 
@@ -154,12 +166,26 @@ def better(new: Run, old: Run, share: float) -> bool:
     return (not new.flagged, new.registered) > (not old.flagged, old.registered)
 
 
-def finer(cfg: SfmConfig, working_scale: float) -> SfmConfig | None:
-    """The settings of the second mapping: ``max_image_size`` doubled; None when the features
-    were already detected at the lit field's full size."""
-    if cfg.max_image_size <= 0 or working_scale >= 1.0:
+def finer(cfg: SfmConfig, working_scale: float, first: Run | None = None,
+          share: float = 0.0) -> SfmConfig | None:
+    """The settings of the second mapping: ``max_image_size`` doubled while the features were
+    detected below the lit field's full size. At full size already, a model short of frames
+    (under ``share`` of those with features) or a failed mapping is mapped again on the image
+    doubled (``first_octave`` one finer, guided matching), unless ``first`` was detected so
+    already (its quality.json ``doubled_frames``: the plain-frame rule): on a pale, plain wall
+    at 640x360 the pieces a model splits into join when each frame has the fine detail the
+    working size blurs away (log: "Short models mapped again on the image doubled"). None:
+    there is nothing finer to try."""
+    if cfg.max_image_size > 0 and working_scale < 1.0:
+        return dataclasses.replace(cfg, max_image_size=2 * cfg.max_image_size)
+    if first is None or cfg.first_octave < 0:
         return None
-    return dataclasses.replace(cfg, max_image_size=2 * cfg.max_image_size)
+    q = first.quality or {}
+    if q.get("doubled_frames"):
+        return None
+    if first.error is None and first.registered >= share * mappable(q):
+        return None  # flagged only: a finer detection is no cure for that
+    return dataclasses.replace(cfg, first_octave=cfg.first_octave - 1, guided_matching=True)
 
 
 def _timed(attempt: Attempt, out: Path, cfg: SfmConfig, failed_dir: Path) -> Run:
@@ -170,7 +196,8 @@ def _timed(attempt: Attempt, out: Path, cfg: SfmConfig, failed_dir: Path) -> Run
     except StageError as exc:
         error = exc
     return Run(cfg.max_image_size, quality, error, failed_dir,
-               time.perf_counter() - t, time.process_time() - c)
+               time.perf_counter() - t, time.process_time() - c,
+               cfg.first_octave < 0 or bool((quality or {}).get("doubled_frames")))
 
 
 def _replace(src: Path, dst: Path) -> None:
@@ -189,11 +216,12 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
     says so and :func:`finer` can; keep the better model in ``out_dir`` (see the module)."""
     first = _timed(attempt, out_dir, cfg, failed_dir(out_dir))
     why = reason(first, cfg.retry_registered_share, cfg.retry_on_rotation_flag)
-    second_cfg = finer(cfg, working_scale) if why else None
+    second_cfg = finer(cfg, working_scale, first, cfg.retry_registered_share) if why else None
     if second_cfg is None:
         if why:
-            log.info("sfm: %s, and the features were already at the lit field's full size: "
-                     "not mapped again", why)
+            log.info("sfm: %s, and there are no finer features to try (the lit field's full "
+                     "size%s): not mapped again", why,
+                     ", on the image doubled" if first.doubled else "")
         if first.error is not None:
             raise first.error
         short = short_model(first, cfg.retry_registered_share)
@@ -201,12 +229,13 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
             q = json.loads((out_dir / "quality.json").read_text())
             write_json(out_dir / "quality.json", {**q, "short_model": short})
         return out_dir
-    log.warning("sfm: %s; mapping again with features at %d px (were %d px)", why,
-                second_cfg.max_image_size, cfg.max_image_size)
+    log.warning("sfm: %s; mapping again with features at %d px%s (were %s)", why,
+                second_cfg.max_image_size,
+                " on the image doubled" if second_cfg.first_octave < 0 else "", first.features)
     retry_dir = out_dir.with_name(out_dir.name + SUFFIX)
     second = _timed(attempt, retry_dir, second_cfg, failed_dir(retry_dir))
     if second.error is not None:
-        log.warning("sfm: the mapping at %d px failed: %s", second.max_image_size, second.error)
+        log.warning("sfm: the mapping at %s failed: %s", second.features, second.error)
     keep = second if better(second, first, cfg.retry_registered_share) else first
     runs = [first.record(), second.record()]
     if keep.error is not None:  # both failed: the second's pieces go beside the first's
@@ -216,7 +245,7 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
             failed_dir(retry_dir).rename(dest)
         msg = str(second.error).replace(str(failed_dir(retry_dir)), str(dest))
         raise StageError(f"{first.error}. Mapped again with features at "
-                         f"{second.max_image_size} px: {msg}")
+                         f"{second.features}: {msg}")
     if keep is second:
         _replace(retry_dir, out_dir)
         shutil.rmtree(failed_dir(out_dir), ignore_errors=True)
@@ -232,8 +261,8 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
         q["short_model"] = short
     write_json(out_dir / "quality.json", q)
     kept, other = (runs[1], runs[0]) if keep is second else (runs[0], runs[1])
-    log.info("sfm: kept the %s mapping (%d frames at %d px; the other: %s at %d px)",
-             "second" if keep is second else "first", kept["registered"],
-             kept["max_image_size"], "failed" if other["failed"] else
-             f"{other['registered']} frames", other["max_image_size"])
+    log.info("sfm: kept the %s mapping (%d frames at %s; the other: %s at %s)",
+             "second" if keep is second else "first", kept["registered"], keep.features,
+             "failed" if other["failed"] else f"{other['registered']} frames",
+             (second if keep is first else first).features)
     return out_dir
