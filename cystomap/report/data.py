@@ -235,15 +235,17 @@ class ComparisonSummary:
     sfm_flags: dict[str, str] = field(default_factory=dict)  # "a"/"b": the SfM self-check's reason
     sfm_short: dict[str, str] = field(default_factory=dict)  # "a"/"b": a model short of frames
 
+    def _named(self, by_key: dict[str, str]) -> list[tuple[str, str]]:
+        names = {"a": self.a, "b": self.b}
+        return [(names[k], v) for k, v in sorted(by_key.items()) if k in names]
+
     def flagged(self) -> list[tuple[str, str]]:
         """(session name, reason) of the sessions whose SfM model its self-check flagged."""
-        names = {"a": self.a, "b": self.b}
-        return [(names[k], v) for k, v in sorted(self.sfm_flags.items()) if k in names]
+        return self._named(self.sfm_flags)
 
     def short(self) -> list[tuple[str, str]]:
         """(session name, in words) of the sessions whose SfM model holds too few frames."""
-        names = {"a": self.a, "b": self.b}
-        return [(names[k], v) for k, v in sorted(self.sfm_short.items()) if k in names]
+        return self._named(self.sfm_short)
 
     @property
     def key(self) -> str:

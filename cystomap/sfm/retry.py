@@ -63,7 +63,7 @@ class Run:
     failed_dir: Path
     time_s: float
     cpu_s: float
-    doubled: bool = False  # features detected on the image doubled (SfmConfig.first_octave -1)
+    first_octave: int = 0  # SfmConfig.first_octave of the mapping
 
     @property
     def registered(self) -> int:
@@ -74,6 +74,12 @@ class Run:
         except (OSError, ValueError, KeyError, TypeError):
             return 0
         return int(sizes[0]) if sizes else 0
+
+    @property
+    def doubled(self) -> bool:
+        """Whether the features were detected on the image doubled (``first_octave`` -1, or
+        the plain-frame rule: quality.json ``doubled_frames``)."""
+        return self.first_octave < 0 or bool((self.quality or {}).get("doubled_frames"))
 
     @property
     def features(self) -> str:
@@ -178,12 +184,9 @@ def finer(cfg: SfmConfig, working_scale: float, first: Run | None = None,
     there is nothing finer to try."""
     if cfg.max_image_size > 0 and working_scale < 1.0:
         return dataclasses.replace(cfg, max_image_size=2 * cfg.max_image_size)
-    if first is None or cfg.first_octave < 0:
+    if first is None or first.doubled:
         return None
-    q = first.quality or {}
-    if q.get("doubled_frames"):
-        return None
-    if first.error is None and first.registered >= share * mappable(q):
+    if first.error is None and first.registered >= share * mappable(first.quality or {}):
         return None  # flagged only: a finer detection is no cure for that
     return dataclasses.replace(cfg, first_octave=cfg.first_octave - 1, guided_matching=True)
 
@@ -196,8 +199,7 @@ def _timed(attempt: Attempt, out: Path, cfg: SfmConfig, failed_dir: Path) -> Run
     except StageError as exc:
         error = exc
     return Run(cfg.max_image_size, quality, error, failed_dir,
-               time.perf_counter() - t, time.process_time() - c,
-               cfg.first_octave < 0 or bool((quality or {}).get("doubled_frames")))
+               time.perf_counter() - t, time.process_time() - c, cfg.first_octave)
 
 
 def _replace(src: Path, dst: Path) -> None:
@@ -225,9 +227,8 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
         if first.error is not None:
             raise first.error
         short = short_model(first, cfg.retry_registered_share)
-        if short is not None and (out_dir / "quality.json").is_file():
-            q = json.loads((out_dir / "quality.json").read_text())
-            write_json(out_dir / "quality.json", {**q, "short_model": short})
+        if short is not None:  # first.quality is what the attempt wrote
+            write_json(out_dir / "quality.json", {**(first.quality or {}), "short_model": short})
         return out_dir
     log.warning("sfm: %s; mapping again with features at %d px%s (were %s)", why,
                 second_cfg.max_image_size,
@@ -260,9 +261,9 @@ def map_with_retry(attempt: Attempt, out_dir: Path, cfg: SfmConfig, working_scal
     if short is not None:
         q["short_model"] = short
     write_json(out_dir / "quality.json", q)
-    kept, other = (runs[1], runs[0]) if keep is second else (runs[0], runs[1])
+    other = first if keep is second else second
     log.info("sfm: kept the %s mapping (%d frames at %s; the other: %s at %s)",
-             "second" if keep is second else "first", kept["registered"], keep.features,
-             "failed" if other["failed"] else f"{other['registered']} frames",
-             (second if keep is first else first).features)
+             "second" if keep is second else "first", keep.registered, keep.features,
+             "failed" if other.error is not None else f"{other.registered} frames",
+             other.features)
     return out_dir
