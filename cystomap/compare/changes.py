@@ -66,11 +66,14 @@ angle of such a camera's direction (the cap) is cut out of the accepted clusters
 still centred within it are dropped (a lesion beside it, joined to the cap's difference in one
 cluster, is measured without the cap rather than dropped with it). With ``neck_chroma`` (the
 default) the angle is the pair's own (:func:`cystomap.compare.neck.chroma_band`: out to where
-the colour is as quiet as on the rest of the wall), and beyond it the band whose brightness
-the levelling's halo disturbs is tested on its colour alone; without it the angle is the
-fixed ``opening_deg``. The alternative ``neck_levelling`` (opt-in) scales the band's
-significance to the wall's noise level ring by ring instead: on held-out pairs it was no
-better (docs/measurements.md, "The wall around the neck").
+the colour is as quiet as on the rest of the wall), beyond it the band whose brightness
+the levelling's halo disturbs is tested on its colour alone, and a region beside the cap is
+followed into it where it stands out against the cap's own noise (ring by ring:
+:func:`cystomap.compare.neck.cap_levels`), so that a lesion at the neck is measured whole;
+such a region is dropped as near the neck only when its part outside the cap is centred
+within it. Without ``neck_chroma`` the angle is the fixed ``opening_deg``. The alternative
+``neck_levelling`` (opt-in) scales the band's significance to the wall's noise level ring by
+ring instead: on held-out pairs it was no better (docs/measurements.md, "The wall around the neck").
 Last, the region must change its patch, not the wall around it: its mean colour relative to
 its ring's must change between the sessions by at least ``min_local_delta_e`` (CIE76 ΔE*ab,
 ``local_delta_e``; the ring is wall: the neck's cap, whose colours change from session to
@@ -129,8 +132,15 @@ import numpy as np
 from cystomap.atlas.projection import Projection, SurfaceRays
 from cystomap.compare.difference import Difference, Grid, lab, luminance
 from cystomap.compare.grid import cone_mask, within_cone
-from cystomap.compare.morphology import _disc, _fill_holes, _morph, label_wrapped, near_on_wall
-from cystomap.compare.neck import chroma_band, level_around_neck
+from cystomap.compare.morphology import (
+    _disc,
+    _fill_holes,
+    _morph,
+    follow_into,
+    label_wrapped,
+    near_on_wall,
+)
+from cystomap.compare.neck import cap_levels, chroma_band, level_around_neck
 from cystomap.compare.null import (
     CANDIDATE_MADS,
     Candidates,
@@ -404,6 +414,9 @@ class _Checks:
         self.openings = openings if openings is not None else np.zeros((0, 3))
         # the neck's cap: not a region's wall (cut out of the clusters and of the outlines)
         self.cap = cone_mask(grid, self.openings, cfg.opening_deg)
+        # (H, W) significance a pixel of the cap needs to extend a region into it (None: none
+        # does; see extend_into_cap)
+        self.cap_floor: np.ndarray | None = None
         self.min_area = math.pi * (cfg.min_diameter_mm / 2) ** 2
         # a strip of unseen wall is widened by the edge margin on both sides and the pieces on
         # either side shrink by the morphological opening
@@ -457,8 +470,9 @@ class _Checks:
         sub_joint = diff.joint[r_lo:r_hi][:, c_idx]
         # the outline stays off the other regions' pixels (a neighbour split off at a saddle)
         sub_lab = lab[r_lo:r_hi][:, c_idx]
-        half = (sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
-                & ~self.cap[r_lo:r_hi][:, c_idx])
+        above = sub_joint & (sub_sig >= 0.5 * peak) & ((sub_lab == 0) | (sub_lab == r))
+        sub_cap = self.cap[r_lo:r_hi][:, c_idx]
+        half = above & ~sub_cap
         core = np.zeros_like(half)
         core[rows - r_lo, ucols - c_lo] = True
         _, half_lab = cv2.connectedComponents(half.astype(np.uint8), connectivity=8)
@@ -476,6 +490,12 @@ class _Checks:
                                           (r_lo, r_hi), c_idx, cfg.ring_mm,
                                           cfg.morphology_mm / grid.mm_per_px_y, gap_kernel,
                                           cfg.edge_margin_mm)
+        # measured on the wall outside the neck's cap; followed into the cap where it stands
+        # out against the cap's own noise (see extend_into_cap)
+        wall_outline = outline
+        if self.cap_floor is not None and sub_cap.any():
+            outline = follow_into(outline, above & sub_cap
+                                  & (sub_sig >= self.cap_floor[r_lo:r_hi][:, c_idx]))
         # the ring: wall within ring_mm of the outline, on the wall (atlas columns shrink
         # towards the poles: a ring of pixels there would be a sliver of the lesion's edge)
         sub_pts = grid.points[r_lo:r_hi][:, c_idx]
@@ -491,6 +511,8 @@ class _Checks:
         ring_pix = (r2 + r_lo) * w + c_idx[c2]
         rr, cc = np.nonzero(outline)
         pix_all = (rr + r_lo) * w + c_idx[cc]
+        rr, cc = np.nonzero(wall_outline)
+        pix_wall = (rr + r_lo) * w + c_idx[cc]
         rr, cc = np.nonzero(seen_outline)
         pix = (rr + r_lo) * w + c_idx[cc]
         where = np.round(np.nanmean(flat_pts[pix], axis=0), 1).tolist()
@@ -539,7 +561,15 @@ class _Checks:
         t_hit, _ = self.rays.cast(self.proj.barycentre, d[None])
         if np.isfinite(t_hit[0]):
             centroid = self.proj.barycentre + t_hit[0] * d
-        if within_cone(d, self.openings, cfg.opening_deg):
+        # near the neck: the part outside the cap centred within it (a change followed into
+        # the cap may be centred there: its own wall decides)
+        p_wall, a_wall = flat_pts[pix_wall], flat_area[pix_wall]
+        ok_wall = np.isfinite(p_wall).all(axis=1)
+        d_wall = ((p_wall[ok_wall] * a_wall[ok_wall, None]).sum(0)
+                  / max(a_wall[ok_wall].sum(), 1e-12) - self.proj.barycentre
+                  if len(pix_wall) < len(pix_all) and ok_wall.any() else d)
+        d_wall = d_wall / max(float(np.linalg.norm(d_wall)), 1e-12)
+        if within_cone(d_wall, self.openings, cfg.opening_deg):
             log.debug("changes: region at %s: within %g deg of the bladder neck, where the "
                       "scope entered", np.round(centroid, 1).tolist(), cfg.opening_deg)
             return "near_neck", None
@@ -582,6 +612,16 @@ class _Checks:
             luminance_b=float(np.median(self.lum_b[pix])) / self.lum_ref_b,
             point_distance_mm=p_dist, elongation=elong, observed_share=observed,
             delta_e=delta_e, local_delta_e=local_de, frame_local_delta_e=frame_de)
+
+    def extend_into_cap(self, cap_level: np.ndarray, candidate_level: float) -> None:
+        """From now on a region touching the neck's cap is followed into it over the pixels
+        above half its peak whose significance is also at least ``candidate_level`` times
+        the cap's noise level there (``cap_level``: :func:`cystomap.compare.neck.cap_levels`):
+        the candidate test of the wall, on the cap's own noise. A lesion beside the neck
+        whose inner part lies in the cap is then measured whole; the cap's residue (its
+        noise scaled up) passes as rarely as the wall's does. Regions are still dropped as
+        near the neck when their part outside the cap is centred within it."""
+        self.cap_floor = np.where(self.cap, cap_level * candidate_level, np.inf)
 
     def reportable(self, labels: np.ndarray, n: int) -> np.ndarray:
         """(n,) bool: whether each cluster of ``labels`` (1 … n) would pass the checks as it is
@@ -638,6 +678,9 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     sig = diff.significance
     checks = _Checks(diff, cfg, proj_full, rays, openings, verify)
     null = candidates(sig, diff.joint, grid.area, cfg.false_alarm_rate, checks.reportable)
+    if cfg.neck_chroma and checks.cap.any():
+        checks.extend_into_cap(cap_levels(sig, diff.joint, grid, checks.openings,
+                                          2 * cfg.smooth_mm, cfg.opening_deg), null.level)
     info: dict[str, Any] = dict(null.info)
     info["neck_chroma" if cfg.neck_chroma else "neck_levelling"] = neck_info
     # the pixel level significance.png marks: the candidate level (what is tested)

@@ -208,7 +208,9 @@ class CompareConfig:
     # is the opening, out to where the colour (the part of the difference no brightness
     # change explains) is as quiet as on the rest of the wall; beyond it, where the
     # brightness part is still noisier than the rest's, only the colour is tested (a
-    # lesion's hue or saturation). Replaces the fixed cone of opening_deg (see
+    # lesion's hue or saturation); a region beside the cap is followed into it where it
+    # stands out against the cap's own noise (ring by ring), so a lesion at the neck is
+    # measured whole. Replaces the fixed cone of opening_deg (see
     # cystomap.compare.neck.chroma_band). Held-out family-C pairs: from 5 mm 111 -> 113 of
     # 121 lesions, from 10 mm 79 -> 80 of 80, false regions unchanged (docs/measurements.md, "The neck
     # band tested on its colour")

@@ -73,6 +73,17 @@ def _ring(mask: np.ndarray, width: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), k) > 0
 
 
+def follow_into(outline: np.ndarray, into: np.ndarray) -> np.ndarray:
+    """``outline`` with the connected pieces of ``into`` that touch it (8-connected)."""
+    import cv2
+
+    if not into.any():
+        return outline
+    _, lab = cv2.connectedComponents((outline | into).astype(np.uint8), connectivity=8)
+    keep = np.unique(lab[outline])
+    return np.isin(lab, keep[keep > 0]) | outline
+
+
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
     from scipy.ndimage import binary_fill_holes
 

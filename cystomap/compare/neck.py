@@ -54,6 +54,10 @@ MIN_RING_PIXELS = 50
 # the whole compared wall's (dev pairs 300, 306, 308: rings away from the neck 0.6-1.6 times,
 # the band 3-50 times)
 BAND_LEVEL = 2.0
+# a ring's level in :func:`chroma_band` is the median of its sectors' levels (this many
+# sectors of azimuth about the neck): a lesion beside the neck fills a few sectors of the
+# rings it crosses and would otherwise lift their levels, widening the cap over itself
+SECTORS = 8
 
 
 def neck_angles(grid: Grid, openings: np.ndarray) -> np.ndarray:
@@ -62,6 +66,30 @@ def neck_angles(grid: Grid, openings: np.ndarray) -> np.ndarray:
     dirs = grid.proj.grid_directions()
     cos = np.clip((dirs @ np.asarray(openings, np.float64).reshape(-1, 3).T).max(axis=-1), -1, 1)
     return np.degrees(np.arccos(cos))
+
+
+def neck_sectors(grid: Grid, openings: np.ndarray, n: int) -> np.ndarray:
+    """(H, W) sector index (0 to ``n`` - 1) of each pixel's azimuth about the neck's mean
+    direction (``openings``: k, 3 unit vectors)."""
+    axis = np.asarray(openings, np.float64).reshape(-1, 3).mean(axis=0)
+    axis /= max(float(np.linalg.norm(axis)), 1e-12)
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    dirs = grid.proj.grid_directions()
+    az = np.arctan2(dirs @ e2, dirs @ e1) % (2 * math.pi)
+    return np.minimum((az / (2 * math.pi) * n).astype(np.int64), n - 1)
+
+
+def sector_level(values: np.ndarray, sel: np.ndarray, sector: np.ndarray, area: np.ndarray,
+                 n: int) -> float:
+    """The median over the ``n`` sectors of the ring ``sel`` of each sector's wall-area
+    weighted median of ``values`` (sectors with too few pixels left out)."""
+    least = max(MIN_RING_PIXELS // n, 1)
+    levels = [weighted_median(values[ss], area[ss])
+              for ss in (sel & (sector == s) for s in range(n)) if ss.sum() >= least]
+    return float(np.median(levels)) if levels else weighted_median(values[sel], area[sel])
 
 
 def neck_rings(grid: Grid, ang: np.ndarray, ring_mm: float) -> tuple[np.ndarray, float]:
@@ -154,6 +182,37 @@ def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid
     return factor, info
 
 
+def cap_levels(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: np.ndarray,
+               ring_mm: float, cap_deg: float) -> np.ndarray:
+    """(H, W) noise level of ``sig`` within ``cap_deg`` of the neck relative to the compared
+    wall's 90° or more from it (at least 1; 1 beyond the cap): ring by ring (as in
+    :func:`chroma_band`), each ring's median of its sectors' wall-area weighted medians,
+    interpolated between ring centres (the nearest ring's where a ring has too little wall)."""
+    openings = np.asarray(openings, np.float64).reshape(-1, 3)
+    out = np.ones(sig.shape, np.float64)
+    if not len(openings) or cap_deg <= 0:
+        return out
+    area = grid.area
+    ang = neck_angles(grid, openings)
+    far = joint & (ang >= 90.0)
+    if far.sum() < MIN_RING_PIXELS:
+        far = joint
+    ref = max(weighted_median(sig[far], area[far]), 1e-9)
+    ring, width = neck_rings(grid, ang, ring_mm)
+    sector = neck_sectors(grid, openings, SECTORS)
+    centres, levels = [], []
+    for k in range(math.ceil(cap_deg / width)):
+        sel = joint & (ring == k)
+        if sel.sum() >= MIN_RING_PIXELS:
+            centres.append((k + 0.5) * width)
+            levels.append(sector_level(sig, sel, sector, area, SECTORS) / ref)
+    if not centres:
+        return out
+    inside = ang < cap_deg
+    out[inside] = np.maximum(np.interp(ang[inside], centres, levels), 1.0)
+    return out
+
+
 def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: float,
                 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """The significance with the wall around the neck tested on its colour alone, the angle
@@ -162,7 +221,10 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
     Rings around the neck (as in :func:`level_around_neck`), each with two levels relative
     to the wall 90° or more from the neck: the median colour significance
     (``diff.significance_colour``: what no brightness change explains) and the median
-    brightness part (``diff.brightness``). The cap (the opening and the mesh that bridges
+    brightness part (``diff.brightness``), each the median of the ring's ``SECTORS``
+    sectors' medians (a lesion beside the neck fills a few sectors of a ring: pair 551's
+    26 mm lesion had widened the cap over itself, to 34.7° where the rest of the ring is
+    quiet from 28.7°). The cap (the opening and the mesh that bridges
     it) reaches from the neck to the first ring at most ``BAND_LEVEL`` in colour beyond the
     ring noisiest in colour (when that one is above ``BAND_LEVEL``; rings inside the opening
     may be quiet: unseen by A, or a uniform view into the urethra). The band is the rings
@@ -183,13 +245,14 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
     ref_b = weighted_median(bright[far], area[far])
     ref = weighted_median(sig[far], area[far])
     ring, width = neck_rings(grid, ang, ring_mm)
+    sector = neck_sectors(grid, openings, SECTORS)
     # each ring's colour and brightness levels relative to the wall's, out to 90 degrees
     rings: list[tuple[int, float, float]] = []
     for k in range(math.ceil(90.0 / width)):
         sel = joint & (ring == k)
         if sel.sum() >= MIN_RING_PIXELS:
-            rings.append((k, weighted_median(sig_c[sel], area[sel]) / max(ref_c, 1e-9),
-                          weighted_median(bright[sel], area[sel]) / max(ref_b, 1e-9)))
+            rings.append((k, sector_level(sig_c, sel, sector, area, SECTORS) / max(ref_c, 1e-9),
+                          sector_level(bright, sel, sector, area, SECTORS) / max(ref_b, 1e-9)))
     if not rings:
         return sig, 0.0, {"band": False, "reason": "no compared wall around the neck"}
     # the cap: out to the first ring at the wall's colour noise level beyond the noisiest
