@@ -1038,6 +1038,20 @@ def test_plain_frames_are_detected_on_doubled_images(tmp_path_factory, tmp_path)
     assert medians["default", "on"] == medians["default", "off"] > 256
 
 
+def test_doubled_frames_counts_every_frame_of_a_doubled_mapping():
+    """quality.json ``doubled_frames``: the plain-frame rule's frames, or every frame when the
+    whole mapping ran on the image doubled (first_octave -1: the retry's second mapping),
+    which recorded 0 before."""
+    from types import SimpleNamespace
+
+    from cystomap.sfm.features import doubled_frames
+
+    plain = SimpleNamespace(plain=("f1.png", "f2.png"))
+    assert doubled_frames(plain, 10, SfmConfig()) == 2
+    doubled = from_mapping(SfmConfig, {"first_octave": -1}, "sfm")
+    assert doubled_frames(SimpleNamespace(plain=()), 10, doubled) == 10
+
+
 def test_loop_rotations_flag_rotation_drift(tmp_path):
     """Rotation drift the epipolar tests cannot see: a synthetic model whose frames from 8 on
     are turned by 3° (loop pairs measured with 0.5 px noise) is flagged, with the size and the

@@ -223,6 +223,13 @@ def plain_session(counts: list[int], cfg: SfmConfig) -> bool:
     return bool(limit > 0 and counts and float(np.median(counts)) < limit)
 
 
+def doubled_frames(features: Features, n_frames: int, cfg: SfmConfig) -> int:
+    """How many of the ``n_frames`` frames had their features detected on the image doubled:
+    every one when ``first_octave`` is below 0 (the doubled second mapping of
+    :func:`cystomap.sfm.retry.finer`), else those of the plain-frame rule."""
+    return n_frames if cfg.first_octave < 0 else len(features.plain)
+
+
 def matching_config(features: Features, cfg: SfmConfig) -> SfmConfig:
     """``cfg`` for matching: with guided matching when the frames were plain (detected again
     doubled) and ``plain_guided_matching`` is on."""

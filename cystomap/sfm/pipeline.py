@@ -337,8 +337,7 @@ def _attempt(pre: Path, out_dir: Path, cfg: SfmConfig, extent_mm: float | None,
                  "calibration": undistort.summary if undistort is not None
                  else intrinsics.fixed_summary(camera),
                  "working_scale": features.scale,
-                 # frames detected again on the image doubled (the plain-frame rule)
-                 "doubled_frames": len(features.plain),
+                 "doubled_frames": feat.doubled_frames(features, len(names), cfg),
                  "consistency": check,
                  "cpu_s": {k: round(v, 3) for k, v in cpu_times.items()},
                  "software": software_versions()},
