@@ -496,6 +496,11 @@ class _Checks:
         if self.cap_floor is not None and sub_cap.any():
             outline = follow_into(outline, above & sub_cap
                                   & (sub_sig >= self.cap_floor[r_lo:r_hi][:, c_idx]))
+            grown = outline & ~wall_outline
+            if grown.any():
+                log.debug("changes: a region beside the neck's cap followed %.0f mm² into it "
+                          "(%.0f mm² outside)", float(grid.area[r_lo:r_hi][:, c_idx][grown].sum()),
+                          float(grid.area[r_lo:r_hi][:, c_idx][wall_outline].sum()))
         # the ring: wall within ring_mm of the outline, on the wall (atlas columns shrink
         # towards the poles: a ring of pixels there would be a sliver of the lesion's edge)
         sub_pts = grid.points[r_lo:r_hi][:, c_idx]
