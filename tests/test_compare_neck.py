@@ -63,9 +63,9 @@ def test_the_cap_ends_where_the_wall_is_quiet_whatever_lies_beside_it(sphere, le
     grid = sphere
     opening = np.array([[0.0, 0.0, -1.0]])
     diff = _significance(grid, lesion_mm, 32.0)
-    _, cap, info = neck.chroma_band(diff, grid, opening, 2.0)
+    _, cap, _, info = neck.chroma_band(diff, grid, opening, 2.0)
     assert CAP_DEG < cap < CAP_DEG + 2 * info["ring_deg"] + 0.01, info
     if lesion_mm:
         monkeypatch.setattr(neck, "SECTORS", 1)
-        _, whole, info = neck.chroma_band(diff, grid, opening, 2.0)
+        _, whole, _, info = neck.chroma_band(diff, grid, opening, 2.0)
         assert whole > 30.0, info

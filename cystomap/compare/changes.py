@@ -69,7 +69,7 @@ default) the angle is the pair's own (:func:`cystomap.compare.neck.chroma_band`:
 the colour is as quiet as on the rest of the wall), beyond it the band whose brightness
 the levelling's halo disturbs is tested on its colour alone, and a region beside the cap is
 followed into it where it stands out against the cap's own noise (ring by ring:
-:func:`cystomap.compare.neck.cap_levels`), so that a lesion at the neck is measured whole;
+:func:`cystomap.compare.neck.chroma_band`), so that a lesion at the neck is measured whole;
 such a region is dropped as near the neck only when its part outside the cap is centred
 within it. Without ``neck_chroma`` the angle is the fixed ``opening_deg``. The alternative
 ``neck_levelling`` (opt-in) scales the band's significance to the wall's noise level ring by
@@ -140,7 +140,7 @@ from cystomap.compare.morphology import (
     label_wrapped,
     near_on_wall,
 )
-from cystomap.compare.neck import cap_levels, chroma_band, level_around_neck
+from cystomap.compare.neck import chroma_band, level_around_neck
 from cystomap.compare.null import (
     CANDIDATE_MADS,
     Candidates,
@@ -621,7 +621,7 @@ class _Checks:
     def extend_into_cap(self, cap_level: np.ndarray, candidate_level: float) -> None:
         """From now on a region touching the neck's cap is followed into it over the pixels
         above half its peak whose significance is also at least ``candidate_level`` times
-        the cap's noise level there (``cap_level``: :func:`cystomap.compare.neck.cap_levels`):
+        the cap's noise level there (``cap_level``: from :func:`cystomap.compare.neck.chroma_band`):
         the candidate test of the wall, on the cap's own noise. A lesion beside the neck
         whose inner part lies in the cap is then measured whole; the cap's residue (its
         noise scaled up) passes as rarely as the wall's does. Regions are still dropped as
@@ -670,6 +670,7 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     import cv2
 
     grid: Grid = diff.grid
+    cap_level: np.ndarray | None = None
     neck_info: dict[str, Any] = ({"band": False, "reason": "no camera at the neck"}
                                  if cfg.neck_chroma else {"levelled": False})
     if cfg.neck_levelling and openings is not None and len(openings):
@@ -677,15 +678,14 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
                                                          openings, 2 * cfg.smooth_mm)
     if cfg.neck_chroma and openings is not None and len(openings):
         # the pair's own cap instead of opening_deg, the band beyond it tested on its colour
-        diff.significance, cap_deg, neck_info = chroma_band(diff, grid, openings,
-                                                            2 * cfg.smooth_mm)
+        diff.significance, cap_deg, cap_level, neck_info = chroma_band(diff, grid, openings,
+                                                                       2 * cfg.smooth_mm)
         cfg = replace(cfg, opening_deg=min(cap_deg, 89.0))
     sig = diff.significance
     checks = _Checks(diff, cfg, proj_full, rays, openings, verify)
     null = candidates(sig, diff.joint, grid.area, cfg.false_alarm_rate, checks.reportable)
-    if cfg.neck_chroma and checks.cap.any():
-        checks.extend_into_cap(cap_levels(sig, diff.joint, grid, checks.openings,
-                                          2 * cfg.smooth_mm, cfg.opening_deg), null.level)
+    if cap_level is not None and checks.cap.any():
+        checks.extend_into_cap(cap_level, null.level)
     info: dict[str, Any] = dict(null.info)
     info["neck_chroma" if cfg.neck_chroma else "neck_levelling"] = neck_info
     # the pixel level significance.png marks: the candidate level (what is tested)

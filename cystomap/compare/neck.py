@@ -182,41 +182,12 @@ def ring_ratio(b_rgb: np.ndarray, a_rgb: np.ndarray, use: np.ndarray, grid: Grid
     return factor, info
 
 
-def cap_levels(sig: np.ndarray, joint: np.ndarray, grid: Grid, openings: np.ndarray,
-               ring_mm: float, cap_deg: float) -> np.ndarray:
-    """(H, W) noise level of ``sig`` within ``cap_deg`` of the neck relative to the compared
-    wall's 90° or more from it (at least 1; 1 beyond the cap): ring by ring (as in
-    :func:`chroma_band`), each ring's median of its sectors' wall-area weighted medians,
-    interpolated between ring centres (the nearest ring's where a ring has too little wall)."""
-    openings = np.asarray(openings, np.float64).reshape(-1, 3)
-    out = np.ones(sig.shape, np.float64)
-    if not len(openings) or cap_deg <= 0:
-        return out
-    area = grid.area
-    ang = neck_angles(grid, openings)
-    far = joint & (ang >= 90.0)
-    if far.sum() < MIN_RING_PIXELS:
-        far = joint
-    ref = max(weighted_median(sig[far], area[far]), 1e-9)
-    ring, width = neck_rings(grid, ang, ring_mm)
-    sector = neck_sectors(grid, openings, SECTORS)
-    centres, levels = [], []
-    for k in range(math.ceil(cap_deg / width)):
-        sel = joint & (ring == k)
-        if sel.sum() >= MIN_RING_PIXELS:
-            centres.append((k + 0.5) * width)
-            levels.append(sector_level(sig, sel, sector, area, SECTORS) / ref)
-    if not centres:
-        return out
-    inside = ang < cap_deg
-    out[inside] = np.maximum(np.interp(ang[inside], centres, levels), 1.0)
-    return out
-
-
 def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: float,
-                ) -> tuple[np.ndarray, float, dict[str, Any]]:
+                ) -> tuple[np.ndarray, float, np.ndarray | None, dict[str, Any]]:
     """The significance with the wall around the neck tested on its colour alone, the angle
-    (degrees) of the neck's cap to cut out, and what was done (for ``compare.json``).
+    (degrees) of the neck's cap to cut out, the cap's noise level (H, W: the significance's
+    ring level relative to the wall's, interpolated between the cap's ring centres, at least
+    1; 1 beyond the cap; None without a cap) and what was done (for ``compare.json``).
 
     Rings around the neck (as in :func:`level_around_neck`), each with two levels relative
     to the wall 90° or more from the neck: the median colour significance
@@ -235,7 +206,7 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
     sig_c, bright = diff.significance_colour, diff.brightness
     openings = np.asarray(openings, np.float64).reshape(-1, 3)
     if sig_c is None or bright is None or not len(openings):
-        return sig, 0.0, {"band": False, "reason": "no camera at the neck"}
+        return sig, 0.0, None, {"band": False, "reason": "no camera at the neck"}
     area = grid.area
     ang = neck_angles(grid, openings)
     far = joint & (ang >= 90.0)
@@ -246,15 +217,17 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
     ref = weighted_median(sig[far], area[far])
     ring, width = neck_rings(grid, ang, ring_mm)
     sector = neck_sectors(grid, openings, SECTORS)
-    # each ring's colour and brightness levels relative to the wall's, out to 90 degrees
-    rings: list[tuple[int, float, float]] = []
+    # each ring's colour, brightness and significance levels relative to the wall's, out to
+    # 90 degrees
+    rings: list[tuple[int, float, float, float]] = []
     for k in range(math.ceil(90.0 / width)):
         sel = joint & (ring == k)
         if sel.sum() >= MIN_RING_PIXELS:
             rings.append((k, sector_level(sig_c, sel, sector, area, SECTORS) / max(ref_c, 1e-9),
-                          sector_level(bright, sel, sector, area, SECTORS) / max(ref_b, 1e-9)))
+                          sector_level(bright, sel, sector, area, SECTORS) / max(ref_b, 1e-9),
+                          sector_level(sig, sel, sector, area, SECTORS) / max(ref, 1e-9)))
     if not rings:
-        return sig, 0.0, {"band": False, "reason": "no compared wall around the neck"}
+        return sig, 0.0, None, {"band": False, "reason": "no compared wall around the neck"}
     # the cap: out to the first ring at the wall's colour noise level beyond the noisiest
     # ring (the opening; rings inside it may be quiet: unseen by A, or a uniform view into
     # the urethra)
@@ -268,17 +241,25 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
         cap_deg = (rings[first - 1][0] + 1) * width
         cap_levels = [round(float(r[1]), 2) for r in rings[:first]]
     band_deg = cap_deg
-    for k, _, level in rings[first:]:
+    for k, _, level, _ in rings[first:]:
         if level <= BAND_LEVEL:
             break
         band_deg = (k + 1) * width
         band_levels.append(round(float(level), 2))
+    # the cap's own noise level, from its rings (a region beside it is followed into it where
+    # it stands out against that: cystomap.compare.changes)
+    cap_level = np.ones(sig.shape, np.float64)
+    if first:
+        inside = ang < cap_deg
+        cap_level[inside] = np.maximum(np.interp(
+            ang[inside], [(r[0] + 0.5) * width for r in rings[:first]],
+            [r[3] for r in rings[:first]]), 1.0)
     info: dict[str, Any] = {"band": band_deg > cap_deg, "cap_deg": round(cap_deg, 2),
                             "band_to_deg": round(max(band_deg, cap_deg), 2),
                             "ring_deg": round(width, 3), "cap_colour_levels": cap_levels,
                             "band_brightness_levels": band_levels}
     if band_deg <= cap_deg:
-        return sig, cap_deg, info
+        return sig, cap_deg, cap_level, info
     factor = ref / max(ref_c, 1e-9)
     band = joint & (ang >= cap_deg) & (ang < band_deg)
     out = np.where(band, np.minimum(sig, factor * sig_c), sig).astype(sig.dtype)
@@ -286,4 +267,4 @@ def chroma_band(diff: Difference, grid: Grid, openings: np.ndarray, ring_mm: flo
     log.info("compare: the wall %.0f-%.0f° from the neck is tested on its colour alone (its "
              "brightness up to %.1f times as noisy as the rest); cap cut out to %.0f°",
              cap_deg, band_deg, max(band_levels), cap_deg)
-    return out, cap_deg, info
+    return out, cap_deg, cap_level, info
