@@ -611,8 +611,10 @@ def _neck_ramp_pair(sphere, lesion_deg: float, ramp: float) -> tuple[np.ndarray,
 def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
     """B brighter than A in a steep ring around the neck (log ratio 0.2 at 8°, 0 at 30°: too
     steep for the 15 mm illumination field): matching the colour ring by ring (neck_ratio,
-    opt-in) keeps a 6 mm lesion 20° from the neck as the one region; without it the lesion
-    is not reported (nor was a 24.8 mm CIS at the neck of held-out pair 131)."""
+    opt-in) keeps a 6 mm lesion 20° from the neck as the one region; without it (and without
+    neck_chroma) the ramp is reported as a change too (a 28 mm region beside the lesion; before
+    the half-maximum separation the ramp and the lesion were one cluster dropped whole, as a
+    24.8 mm CIS at the neck of held-out pair 131 was)."""
     a, b, a_seen, opening, centre = _neck_ramp_pair(sphere, 20.0, 0.2)
     hit = sphere[2].hit
     regions = _detect(sphere, a, b, a_seen, hit, openings=opening[None], neck_ratio=True,
@@ -622,7 +624,8 @@ def test_neck_ratio_matches_the_brightness_ramp_around_the_neck(sphere) -> None:
     assert 0.7 * 6 < regions[0].diameter_mm < 1.3 * 6  # measured 5.6
     plain = _detect(sphere, a, b, a_seen, hit, openings=opening[None], opening_deg=0.0,
                     neck_chroma=False)
-    assert not any(np.linalg.norm([r.x, r.y, r.z] - centre) < 3 for r in plain)
+    assert len(plain) == 2, [(r.diameter_mm, r.x, r.y, r.z) for r in plain]
+    assert sum(np.linalg.norm([r.x, r.y, r.z] - centre) > 3 for r in plain) == 1
     # the default (neck_chroma): the ramp is a change of brightness, the lesion one of colour
     chroma = _detect(sphere, a, b, a_seen, hit, openings=opening[None])
     assert len(chroma) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in chroma]
@@ -700,3 +703,41 @@ def test_lesion_reaching_into_the_neck_cap_is_measured_whole(sphere, monkeypatch
     assert len(cut) == 1, [(r.diameter_mm, r.x, r.y, r.z) for r in cut]
     assert np.linalg.norm([cut[0].x, cut[0].y, cut[0].z] - centre) > 2.5
     assert cut[0].diameter_mm < 0.85 * 20
+
+
+def _two_lesions_in_residue(sphere) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A 20 mm lesion and an 8 mm one of lower contrast 30 mm apart, both inside a broad
+    patch of colour residue (Gaussian, σ 14 mm, between them) that is itself significant:
+    the pair's one accepted cluster holds both (pair 610's 26.2 and 8.5 mm lesions)."""
+    grid = sphere[2]
+    pts = np.nan_to_num(grid.points)
+    rng = np.random.default_rng(6)
+    a = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    b = WALL + rng.normal(0, 2.0, (*grid.shape, 3))
+    c1, c2 = _on_sphere(0.2, 0.5), _on_sphere(0.2, 0.5 + 30.0 / RADIUS / math.cos(0.2))
+    residue = np.exp(-np.sum((pts - (c1 + c2) / 2) ** 2, -1) / (2 * 14.0 ** 2))[..., None]
+    b = b + 1.5 * residue * np.array([6.0, -4.0, -2.0])
+    for c, d, k in ((c1, 20.0, 0.4), (c2, 8.0, 0.25)):
+        disc = grid.hit & (np.linalg.norm(pts - c, axis=-1) < d / 2)
+        b[disc] = b[disc] + k * (LESION - WALL)
+    return a, b, c1, c2
+
+
+def test_two_lesions_in_one_patch_of_residue_are_measured_apart(sphere, monkeypatch) -> None:
+    """Each lesion its own region at its own centre and size; measured as one cluster's
+    half-maximum outline (without :func:`separate_half_maxima`) the weaker lesion is lost and
+    the stronger one's centroid pulled towards it (one region, 2.5 mm off)."""
+    import cystomap.compare.changes as changes
+
+    grid = sphere[2]
+    a, b, c1, c2 = _two_lesions_in_residue(sphere)
+    regions = _detect(sphere, a, b, grid.hit, grid.hit)
+    assert len(regions) == 2, [(r.diameter_mm, r.x, r.y, r.z) for r in regions]
+    for c, d in ((c1, 20.0), (c2, 8.0)):
+        g = min(regions, key=lambda r: np.linalg.norm([r.x, r.y, r.z] - c))
+        assert np.linalg.norm([g.x, g.y, g.z] - c) < 0.5
+        assert abs(g.diameter_mm - d) < 0.1 * d
+    monkeypatch.setattr(changes, "separate_half_maxima", lambda sig, lab, n, p: (lab, n))
+    joined = _detect(sphere, a, b, grid.hit, grid.hit)
+    assert len(joined) == 1
+    assert np.linalg.norm([joined[0].x, joined[0].y, joined[0].z] - c1) > 2.0
