@@ -737,7 +737,7 @@ def test_two_lesions_in_one_patch_of_residue_are_measured_apart(sphere, monkeypa
         g = min(regions, key=lambda r: np.linalg.norm([r.x, r.y, r.z] - c))
         assert np.linalg.norm([g.x, g.y, g.z] - c) < 0.5
         assert abs(g.diameter_mm - d) < 0.1 * d
-    monkeypatch.setattr(changes, "separate_half_maxima", lambda sig, lab, n, p: (lab, n))
+    monkeypatch.setattr(changes, "separate_half_maxima", lambda sig, lab, n, *_: (lab, n))
     joined = _detect(sphere, a, b, grid.hit, grid.hit)
     assert len(joined) == 1
     assert np.linalg.norm([joined[0].x, joined[0].y, joined[0].z] - c1) > 2.0

@@ -48,3 +48,21 @@ def test_seam_wrapping_blob_is_one_object() -> None:
     out, n = separate_half_maxima(sig, lab, 1, 99.0)
     assert n == 2
     assert out[20, 0] == out[20, 199] != out[20, 100]
+
+
+def test_pieces_too_weak_alone_or_joined_across_unseen_wall_stay_one() -> None:
+    """The two peaks of the first test stay one region when the weaker one's piece would not
+    be reported on its own (a faint lesion in fragments), or when the wall between them is grown
+    over (a strip of unseen wall between two halves of one lesion)."""
+    shape = (60, 120)
+    sig = 20 + 80 * _blob(shape, 30, 30, 5) + 40 * _blob(shape, 30, 90, 4)
+    lab = np.ones(shape, np.int32)
+    strong = sig.ravel() >= 90
+    _, n = separate_half_maxima(sig, lab, 1, 99.0,
+                                stands=lambda pieces, _: [bool(strong[p].any()) for p in pieces])
+    assert n == 1
+    _, n = separate_half_maxima(sig, lab, 1, 99.0, grow=lambda m: m | (sig > 0))
+    assert n == 1
+    _, n = separate_half_maxima(sig, lab, 1, 99.0, grow=lambda m: m,
+                                stands=lambda pieces, _: [True] * len(pieces))
+    assert n == 2

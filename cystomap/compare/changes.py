@@ -658,6 +658,23 @@ class _Checks:
         return out
 
 
+def _across_unseen(diff: Difference, gap_kernel: np.ndarray | None,
+                   ) -> Callable[[np.ndarray], np.ndarray] | None:
+    """A mask grown over wall the comparison left out that the mesh covers by the gap kernel
+    (pieces of one change on both sides of a strip of unseen wall meet: :func:`_join_pieces`);
+    None without gap filling."""
+    import cv2
+
+    if gap_kernel is None:
+        return None
+    bridge = ~diff.joint & diff.grid.hit
+
+    def grow(mask: np.ndarray) -> np.ndarray:
+        return mask | (_morph(mask, cv2.MORPH_DILATE, gap_kernel) & bridge)
+
+    return grow
+
+
 def _where(grid: Grid, px: np.ndarray) -> list[float]:
     """The area-weighted mean wall point of flat grid pixels ``px`` (for the log)."""
     p, a = grid.points.reshape(-1, 3)[px], grid.area.ravel()[px]
@@ -723,7 +740,15 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         lab, n = _join_pieces(lab, n, cand, diff, null, cfg, checks.gap_kernel)
     # changes that one cluster holds but whose half maxima are separate objects are measured
     # apart (two lesions in one patch of residue)
-    lab, n = separate_half_maxima(sig, lab, n, PEAK_PERCENTILE)
+    def stands(pieces: list[np.ndarray], labels: np.ndarray) -> list[bool]:
+        first = int(labels.ravel()[pieces[0][0]])
+        return [null.expected_false(null.statistics(sig.ravel()[px], grid.area.ravel()[px]))
+                <= cfg.false_alarm_rate
+                and checks.measure(px, labels, first + i, verify=False)[0] == ""
+                for i, px in enumerate(pieces)]
+
+    lab, n = separate_half_maxima(sig, lab, n, PEAK_PERCENTILE,
+                                  _across_unseen(diff, checks.gap_kernel), stands)
     regions: list[Region] = []
     dropped = dict.fromkeys(DROP_REASONS, 0)
     dropped_duplicate = 0
