@@ -101,6 +101,12 @@ def _select(s: _Scores, cfg: FramesConfig, probe: _Probe) -> _Selection:
                 q += 1
             kept.append(best)
             last, p = best, best_p + 1
+        # the video's last frame shows the end of the sweep, wall no later frame will show:
+        # kept when it moved on from the last kept frame (as across a break, above)
+        if thr > 0 and kept and len(eligible):
+            end = int(eligible[-1])
+            if end - kept[-1] >= cfg.min_gap and 0.5 * thr <= motion(kept[-1], end) < math.inf:
+                kept.append(end)
         return kept
 
     # the spacing scales with the lit field of view, not the frame (black borders, a round

@@ -37,8 +37,9 @@ of what it shows, not of the frame). Frames are kept greedily: a good frame is k
 least ``min_motion`` since the last kept frame; a sharper frame among the next ``lookahead``
 may be taken instead only while the motion stays within twice ``min_motion``, and after a jump
 (dropped frames, a tracking break) the last frame before it is kept too when that splits the
-gap. ``max_frames`` raises the spacing until the selection fits, so kept frames still cover
-the whole video.
+gap; the video's last good frame (the end of the sweep, which no later frame shows) is kept
+when it moved at least half ``min_motion`` since the last kept frame. ``max_frames`` raises
+the spacing until the selection fits, so kept frames still cover the whole video.
 
 The video is decoded once, streaming, in a worker thread: each frame is reduced to its
 analysis grey, which goes to a file in the output's temporary directory (a few hundred bytes of
@@ -148,7 +149,8 @@ class FramesConfig:
     blur_unmatched_rel: float = setting(0.15, "[0, 1)")
     # Target spacing: a good frame is "redundant" until the scene moved by this fraction of the
     # diagonal of the FOV's bounding box (the image's with fov "full") since the last kept frame
-    # (median displacement of FOV points): of a pause only the first frame is kept.
+    # (median displacement of FOV points): of a pause only the first frame is kept. The
+    # video's last good frame is kept too when it moved half this since the last kept frame.
     min_motion: float = setting(0.03, ">= 0")
     # Minimum distance between kept frames, in frames (1 = no constraint).
     min_gap: int = setting(1, ">= 1")

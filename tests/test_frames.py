@@ -85,6 +85,9 @@ def test_default_settings_space_frames(pan_video: Path, tmp_path: Path) -> None:
             assert rows[i]["reason"] == reason
     kept = [r for r in rows if r["kept"]]
     threshold = cfg.min_motion * DIAGONAL  # 11 px: every third frame at 4 px / frame
+    # (the video's last frame is kept once it moved half the spacing: test_last_frame_...)
+    assert kept[-1]["frame"] == N - 1 and kept[-1]["motion_px"] >= 0.5 * threshold
+    kept = kept[:-1]
     assert all(r["motion_px"] >= threshold for r in kept[1:])
     assert all(rows[i]["reason"] == "redundant" for i in range(N)
                if not rows[i]["kept"] and i not in (10, 20, 40))
@@ -97,7 +100,7 @@ def test_default_settings_space_frames(pan_video: Path, tmp_path: Path) -> None:
 
 def test_spacing_and_min_gap(pan_video: Path, tmp_path: Path) -> None:
     cfg = FramesConfig(min_motion=0.05, lookahead=0)  # 18.4 px: every 5th frame
-    kept = [r for r in _run(pan_video, tmp_path / "a", cfg) if r["kept"]]
+    kept = [r for r in _run(pan_video, tmp_path / "a", cfg) if r["kept"]][:-1]  # but the last
     frames = [r["frame"] for r in kept]
     assert all(r["motion_px"] >= 0.05 * DIAGONAL for r in kept[1:])
     assert set(np.diff(frames)) <= {5, 6}  # 6 where a frame of the 5th step was dropped
@@ -107,6 +110,25 @@ def test_spacing_and_min_gap(pan_video: Path, tmp_path: Path) -> None:
     frames = [r["frame"] for r in _run(pan_video, tmp_path / "b", cfg) if r["kept"]]
     assert frames[0] == 0 and np.diff(frames).min() >= 10
     assert 5 <= len(frames) <= 6
+
+
+def test_last_frame_is_kept_when_it_moved_on(pan_video: Path, tmp_path: Path) -> None:
+    """The video's last frame shows the end of the sweep, which no later frame shows: kept
+    when it moved at least half the spacing since the last kept frame (4 px steps, every 5th
+    frame kept at 18.4 px: frame 59, 12 px after frame 56); a pause at the end adds that one
+    view once, not one frame per paused frame."""
+    cfg = FramesConfig(min_motion=0.05, lookahead=0)
+    rows = _run(pan_video, tmp_path / "a", cfg)
+    kept = [r for r in rows if r["kept"]]
+    assert kept[-1]["frame"] == N - 1 and kept[-2]["frame"] == 56  # 5th steps, one shifted
+    assert 0.5 * 0.05 * DIAGONAL <= kept[-1]["motion_px"] < 0.05 * DIAGONAL
+    frames = sv.pan_frames(N, SPEED)
+    paused = sv.write_video(tmp_path / "paused.mp4", frames + [frames[-1]] * 12, FPS)
+    rows = _run(paused, tmp_path / "b", cfg)
+    kept = [r["frame"] for r in rows if r["kept"]]
+    # the pause adds one frame, its last (frame 59's view), however long it is
+    assert kept[-1] == N + 11 and kept[-2] == N - 5  # no defects here: every 5th frame
+    assert all(r["reason"] == "redundant" for r in rows[N - 4:N + 11])
 
 
 def test_max_frames_spreads_over_the_video(pan_video: Path, tmp_path: Path) -> None:
