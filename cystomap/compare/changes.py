@@ -675,13 +675,6 @@ def _across_unseen(diff: Difference, gap_kernel: np.ndarray | None,
     return grow
 
 
-def _where(grid: Grid, px: np.ndarray) -> list[float]:
-    """The area-weighted mean wall point of flat grid pixels ``px`` (for the log)."""
-    p, a = grid.points.reshape(-1, 3)[px], grid.area.ravel()[px]
-    ok = np.isfinite(p).all(axis=1)
-    return np.round((p[ok] * a[ok, None]).sum(0) / max(float(a[ok].sum()), 1e-12), 1).tolist()
-
-
 def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
            verify: Callable[[np.ndarray, np.ndarray], dict[str, Any]] | None = None,
            openings: np.ndarray | None = None,
@@ -741,11 +734,10 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
     # changes that one cluster holds but whose half maxima are separate objects are measured
     # apart (two lesions in one patch of residue)
     def stands(pieces: list[np.ndarray], labels: np.ndarray) -> list[bool]:
-        first = int(labels.ravel()[pieces[0][0]])
         return [null.expected_false(null.statistics(sig.ravel()[px], grid.area.ravel()[px]))
                 <= cfg.false_alarm_rate
-                and checks.measure(px, labels, first + i, verify=False)[0] == ""
-                for i, px in enumerate(pieces)]
+                and checks.measure(px, labels, int(labels.ravel()[px[0]]), verify=False)[0] == ""
+                for px in pieces]
 
     lab, n = separate_half_maxima(sig, lab, n, PEAK_PERCENTILE,
                                   _across_unseen(diff, checks.gap_kernel), stands)
@@ -769,7 +761,9 @@ def detect(diff: Difference, cfg: Any, proj_full: Projection, rays: SurfaceRays,
         if expected_false > cfg.false_alarm_rate:  # what the morphology left is not a change
             dropped["weak"] += 1
             log.debug("changes: region at %s (%.0f mm²): after cleaning expected false %.3g > "
-                      "%g, not a change", _where(grid, px), float(flat_area[px].sum()),
+                      "%g, not a change",
+                      np.round(np.nanmean(grid.points.reshape(-1, 3)[px], axis=0), 1).tolist(),
+                      float(flat_area[px].sum()),
                       expected_false, cfg.false_alarm_rate)
             continue
         reason, g = checks.measure(px, lab, r)

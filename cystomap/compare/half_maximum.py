@@ -9,9 +9,10 @@ between the lesions and loses the weaker one. A blob is its own change when, at 
 own* peak, it is still not connected to a stronger blob: it is a separate object by the
 same half-maximum rule the outline is measured with (no new constant). Blobs that do connect
 at that level are parts of one change (the lobes of a heterogeneous lesion: the valley
-between them stays above half their height), and so are blobs that come within ``merge_mm``
-of each other or meet across a strip of unseen wall at that level (what joins the pieces of
-one change: :func:`cystomap.compare.changes._join_pieces`).
+between them stays above half their height), and so are blobs that meet across a strip of
+unseen wall at that level (what joins the pieces of one change there:
+:func:`cystomap.compare.changes._join_pieces`). A region is split only into pieces that would
+each be reported on their own.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def separate_half_maxima(sig: np.ndarray, lab: np.ndarray, n: int, peak_percenti
     ``grow(mask)``: ``mask`` grown across what still joins one change (a strip of unseen wall:
     the pieces :func:`cystomap.compare.changes._join_pieces` joins there); blobs that touch
     once grown are not separate. ``stands(pieces, labels)``: whether each piece (flat pixels;
-    ``labels``: the grid's labels with the pieces as regions ``n + 1`` …) would be reported
+    ``labels``: the grid's labels with each piece as a new region of its own) would be reported
     on its own (a change by the pair's null that passes the checks); a region is split only
     into pieces that all would (a faint lesion in fragments, each too weak alone, or a lesion
     whose valley leaves a sliver at the edge of the compared wall, stays whole)."""
@@ -64,8 +65,9 @@ def separate_half_maxima(sig: np.ndarray, lab: np.ndarray, n: int, peak_percenti
                 continue  # joined to a stronger blob at half its own height: one change
             objects.append(int(j))
         # flooded over the grown region, so that parts of it joined across unseen wall go
-        # to the object they belong to; an object whose piece is no change on its own is
-        # given back (the weakest first)
+        # to the object they belong to; while a piece would not be reported on its own, the
+        # weakest such object is given back (the weakest of all when only the strongest
+        # blob's piece fails)
         flood = m if grow is None else grow(m) | m
         while len(objects) > 1:
             markers = np.zeros(lab.shape, np.int32)
@@ -84,7 +86,7 @@ def separate_half_maxima(sig: np.ndarray, lab: np.ndarray, n: int, peak_percenti
                     count += 1
                     out.ravel()[p] = count
                 break
-            objects.pop(max(weak[-1], 1))
+            objects.pop(weak[-1] if weak[-1] > 0 else len(objects) - 1)
     return out, count
 
 
