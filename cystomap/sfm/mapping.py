@@ -274,6 +274,7 @@ def reconstruct(
                 dense["sift_points_dropped"] = drop_short_sift(rec, sift, cfg, stride)
     with _clock(cpu, "final_ba"):
         final = final_adjustment(rec, cfg, refine)
+    final["lone_frames"] = drop_lone_frames(rec, names, cfg.sequential_overlap)
     final["registered_after_keyframes"] = added
     final["pieces_joined"] = joined
     final["weak_frames"] = sorted(names[i] for i in weak)
@@ -470,6 +471,41 @@ def final_adjustment(rec: Any, cfg: SfmConfig, refine: bool) -> dict[str, Any]:
     return {"iterations": rounds, "observations_dropped": dropped,
             "reprojection_error_before_px": before, "reprojection_error_after_px": after,
             "thin_frames": thin}
+
+
+def drop_lone_frames(rec: Any, names: list[str], reach: int) -> dict[str, str]:
+    """Take out of ``rec`` every registered frame with no other registered frame within
+    ``reach`` places of it in the video (``names``, video order; ``sequential_overlap``): no
+    chain pair tests its pose, which rests on loop matches alone. Returns why, per frame name
+    (quality.json's ``dropped_frames``).
+
+    On held-out glints:11 (1280x720, blurred) frame 106, between black, blurred and thin
+    frames, was placed by 95 points shared with frames 63-67 (a blurred stretch, 0.5-1.6 mm
+    off) 12.9 mm from its true pose, and no check could see it (docs/measurements.md,
+    "Pieces joined on two shared frames")."""
+    import pycolmap
+
+    at = {n: k for k, n in enumerate(names)}
+    reg = {i: at[rec.image(i).name] for i in rec.reg_image_ids() if rec.image(i).name in at}
+    if len(reg) < 3:
+        return {}
+    placed = set(reg.values())
+    lone = sorted((i for i, k in reg.items()
+                   if not any(k + d in placed for d in range(-reach, reach + 1) if d)),
+                  key=lambda i: reg[i])
+    if not lone:
+        return {}
+    obs = pycolmap.ObservationManager(rec)
+    out = {}
+    for i in lone:
+        name = rec.image(i).name
+        out[name] = (f"registered alone (no other frame within {reach} of it in the model): "
+                     "its pose rests on loop matches no neighbour checks")
+        obs.deregister_frame(rec.image(i).frame_id)
+    log.warning("mapping: %d frame(s) registered with no neighbour within %d frames taken out "
+                "of the model (nothing along the video checks their poses): %s", len(out),
+                reach, ", ".join(out))
+    return out
 
 
 def drop_thin_frames(rec: Any, share: float) -> dict[str, str]:

@@ -149,7 +149,8 @@ def summarise(
     reproj_world = None
     if reproj is not None and len(depths):
         reproj_world = reproj * float(np.median(depths)) / fx
-    thin = (extra.get("final_adjustment") or {}).get("thin_frames") or {}
+    final = extra.get("final_adjustment") or {}
+    thin = {**(final.get("thin_frames") or {}), **(final.get("lone_frames") or {})}
     dropped = dropped_frames(names, features, matches, models, min_keypoints, thin)
     reasons: dict[str, int] = {}
     for r in dropped.values():
