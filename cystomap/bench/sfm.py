@@ -18,7 +18,8 @@ preprocessed, so the stage gets all 124 or 572 frames) this runs :func:`cystomap
 mapping; one shared camera) ``--baseline-repeats`` times on the same enhanced frames, scores
 both with :mod:`cystomap.evaluate` and writes ``sfm.tsv``, ``sfm.md`` and ``sfm.json`` under
 ``--out``. Times are medians over the runs; scores are those of the last run (the stage is
-deterministic).
+not fully deterministic across processes: on blurred video two runs of one render can differ,
+e.g. glints:10 0.254 and 0.191 mm on 2026-12-07).
 """
 
 from __future__ import annotations
