@@ -7,9 +7,9 @@ registered one by one to the largest model (too few of their matches have a 3-D 
 but the frames both models registered fix the similarity between them: the piece's poses are
 brought into the largest model by that similarity (fitted on the reprojections of the shared
 frames, COLMAP's model merger, or where too few of their points agree - little parallax - on
-the poses of at least three shared frames), its frames triangulated and the whole adjusted. A join is kept
-only when the model then contradicts the frame pairs nowhere more than before (``guard``,
-the seam rule of :mod:`cystomap.sfm.consistency`); otherwise it is undone.
+the poses of at least three shared frames), its frames triangulated and the whole adjusted. A
+join is kept only when the model then contradicts the frame pairs nowhere more than before
+(``guard``, the seam rule of :mod:`cystomap.sfm.consistency`); otherwise it is undone.
 """
 
 from __future__ import annotations
